@@ -1,0 +1,32 @@
+"""The `vlmap` console script. Each subcommand lives beside the code it drives and registers itself here."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+# Modules exposing `add_parser(subparsers)`; each sets `func` on its parser. Imported lazily so that
+# `vlmap serve` does not pay for torch or matplotlib.
+_COMMAND_MODULES = {
+    "serve": "app.api.cli",
+    "openapi": "app.api.cli",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vlmap", description="VL-Map: language as a calibrated sensor for robots.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for module_name in dict.fromkeys(_COMMAND_MODULES.values()):
+        importlib.import_module(module_name).add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

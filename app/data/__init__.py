@@ -1,0 +1,1 @@
+"""Grounding cases: the evaluation file format, the builder from real layouts, and converters."""

@@ -1,0 +1,39 @@
+"""Domain exceptions. The API maps each to one HTTP status in `app.api.errors`; nothing else raises HTTP."""
+
+from __future__ import annotations
+
+
+class VLMapError(Exception):
+    """Base class of every error this package raises on purpose."""
+
+
+class InvalidInput(VLMapError):
+    """A request or file is malformed; `field` names the offending location (dotted path)."""
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.field = field
+
+    def __str__(self) -> str:
+        base = super().__str__()
+        return f"{self.field}: {base}" if self.field else base
+
+
+class InvalidSceneGraph(InvalidInput):
+    """A scene graph (in any accepted format) cannot be read or normalised."""
+
+
+class LimitExceeded(VLMapError):
+    """A configured limit (objects per scene graph, voxels per batch, ...) was exceeded."""
+
+    def __init__(self, message: str, limit_name: str) -> None:
+        super().__init__(message)
+        self.limit_name = limit_name
+
+
+class NotFound(VLMapError):
+    """A named resource (session, model, object id) does not exist."""
+
+
+class ModelUnavailable(VLMapError):
+    """The grounding model or an upstream dependency (LLM endpoint, store) cannot serve right now."""

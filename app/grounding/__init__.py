@@ -1,0 +1,1 @@
+"""Language grounding: hypotheses (which anchor, which relation) and their Gaussian mixture."""

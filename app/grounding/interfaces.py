@@ -1,0 +1,36 @@
+"""The two factors of the language sensor, as interfaces.
+
+P(target | L, map) = sum_h P(target | h, map) * P(h | L, map): a `HypothesisProposer` gives the second
+factor (weighted hypotheses), a `Grounder` the first (one Gaussian per hypothesis).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+from app.grounding.hypotheses import Hypothesis, Proposal
+from app.grounding.mixture import Gaussian
+from app.scene_graph.model import SceneGraph
+
+
+@runtime_checkable
+class HypothesisProposer(Protocol):
+    """Reads the utterance against the map and returns weighted hypotheses."""
+
+    name: str
+
+    def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal: ...
+
+
+@runtime_checkable
+class Grounder(Protocol):
+    """Spatial grounding: one Gaussian over the target's position for each hypothesis."""
+
+    name: str
+    version: str
+
+    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]: ...
+
+    def describe(self) -> dict[str, Any]:
+        """Name, version, config and weights checksum, for /v1/models and model cards."""
+        ...

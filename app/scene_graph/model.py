@@ -1,0 +1,160 @@
+"""The native scene graph: objects with labels and boxes, grouped into regions (metres, z up).
+
+Every accepted input format (region-grouped JSON, Spark-DSG, VLA-3D) is normalised into `SceneGraph`.
+Validation errors name the offending field so that the API can answer 422 with a precise message.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3, description="x, y, z in metres")]
+
+
+def _check_finite(name: str, values: list[float]) -> list[float]:
+    if not all(math.isfinite(v) for v in values):
+        msg = f"{name} must hold finite numbers (no NaN or infinity), got {values}"
+        raise ValueError(msg)
+    return values
+
+
+def _check_positive(name: str, values: list[float]) -> list[float]:
+    if not all(v > 0 for v in values):
+        msg = f"{name} must be strictly positive in every axis, got {values}"
+        raise ValueError(msg)
+    return values
+
+
+class Region(BaseModel):
+    """A room or other region of the map, as an axis-aligned box."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: str = Field(min_length=1, max_length=128)
+    name: str = Field(default="", max_length=256)
+    center: Vec3
+    size: Vec3
+
+    @field_validator("center")
+    @classmethod
+    def _center_finite(cls, v: list[float]) -> list[float]:
+        return _check_finite("center", v)
+
+    @field_validator("size")
+    @classmethod
+    def _size_positive(cls, v: list[float]) -> list[float]:
+        return _check_positive("size", _check_finite("size", v))
+
+
+class SceneObject(BaseModel):
+    """One mapped object: a labelled box, rotated by `yaw` (radians, about +z) around its centre."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: str = Field(min_length=1, max_length=128)
+    label: str = Field(min_length=1, max_length=256)
+    center: Vec3
+    size: Vec3
+    yaw: float = 0.0
+    region_id: str | None = None
+    attributes: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("center")
+    @classmethod
+    def _center_finite(cls, v: list[float]) -> list[float]:
+        return _check_finite("center", v)
+
+    @field_validator("size")
+    @classmethod
+    def _size_positive(cls, v: list[float]) -> list[float]:
+        return _check_positive("size", _check_finite("size", v))
+
+    @field_validator("yaw")
+    @classmethod
+    def _yaw_finite(cls, v: float) -> float:
+        return _check_finite("yaw", [v])[0]
+
+    @property
+    def min_corner(self) -> np.ndarray:
+        """Lower corner of the axis-aligned box that bounds the (possibly rotated) object."""
+        return np.asarray(self.center) - self.half_extent
+
+    @property
+    def max_corner(self) -> np.ndarray:
+        """Upper corner of the axis-aligned box that bounds the (possibly rotated) object."""
+        return np.asarray(self.center) + self.half_extent
+
+    @property
+    def half_extent(self) -> np.ndarray:
+        """Half sizes of the axis-aligned bounding box of the yawed box."""
+        c, s = abs(math.cos(self.yaw)), abs(math.sin(self.yaw))
+        dx, dy, dz = self.size
+        return 0.5 * np.array([c * dx + s * dy, s * dx + c * dy, dz])
+
+
+class SceneGraph(BaseModel):
+    """Objects and regions of one map; ids are unique and every object's region exists."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    frame_id: str = Field(default="map", max_length=128)
+    regions: list[Region] = Field(default_factory=list)
+    objects: list[SceneObject] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _check_references(self) -> SceneGraph:
+        region_ids = [r.id for r in self.regions]
+        dup_regions = _duplicates(region_ids)
+        if dup_regions:
+            msg = f"regions: duplicate region ids {dup_regions}"
+            raise ValueError(msg)
+        dup_objects = _duplicates([o.id for o in self.objects])
+        if dup_objects:
+            msg = f"objects: duplicate object ids {dup_objects}"
+            raise ValueError(msg)
+        known = set(region_ids)
+        for index, obj in enumerate(self.objects):
+            if obj.region_id is not None and obj.region_id not in known:
+                msg = f"objects[{index}].region_id: unknown region id {obj.region_id!r}"
+                raise ValueError(msg)
+        return self
+
+    def object(self, object_id: str) -> SceneObject:
+        """The object with this id; KeyError if absent."""
+        for obj in self.objects:
+            if obj.id == object_id:
+                return obj
+        raise KeyError(object_id)
+
+    def region(self, region_id: str) -> Region:
+        """The region with this id; KeyError if absent."""
+        for reg in self.regions:
+            if reg.id == region_id:
+                return reg
+        raise KeyError(region_id)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned (min, max) corners over all objects and regions; a unit box at the origin if empty."""
+        lows = [o.min_corner for o in self.objects]
+        highs = [o.max_corner for o in self.objects]
+        for r in self.regions:
+            half = 0.5 * np.asarray(r.size)
+            lows.append(np.asarray(r.center) - half)
+            highs.append(np.asarray(r.center) + half)
+        if not lows:
+            return np.full(3, -0.5), np.full(3, 0.5)
+        return np.min(lows, axis=0), np.max(highs, axis=0)
+
+
+def _duplicates(ids: list[str]) -> list[str]:
+    seen: set[str] = set()
+    dups: list[str] = []
+    for i in ids:
+        if i in seen and i not in dups:
+            dups.append(i)
+        seen.add(i)
+    return dups
