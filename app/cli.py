@@ -16,7 +16,9 @@ _COMMAND_MODULES = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="vlmap", description="VL-Map: language as a calibrated sensor for robots.")
+    parser = argparse.ArgumentParser(
+        prog="vlmap", description="VL-Map: language as a calibrated sensor for robots."
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module_name in dict.fromkeys(_COMMAND_MODULES.values()):
         importlib.import_module(module_name).add_parser(sub)

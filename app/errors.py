@@ -37,3 +37,7 @@ class NotFound(VLMapError):
 
 class ModelUnavailable(VLMapError):
     """The grounding model or an upstream dependency (LLM endpoint, store) cannot serve right now."""
+
+
+class UnsupportedMediaType(InvalidInput):
+    """A body arrived in a content type the endpoint does not read."""

@@ -2,8 +2,8 @@
 
     {"case_id": str, "scene_graph": <native SceneGraph>, "utterance": str,
      "target": {"label": str, "position": [x, y, z], "size": [dx, dy, dz] | null},
-     "hypotheses": [{"anchor_ids": [str, ...], "relation": str}] | null,   # ground truth when known
-     "meta": {...}}                                                       # free-form: source, scene_id, ambiguity
+     "hypotheses": [{"anchor_ids": [str, ...], "relation": str}] | null,  # ground truth when known
+     "meta": {...}}  # free-form: source, scene_id, ambiguity
 
 The target is absent from `scene_graph`; `hypotheses` hold the true grounding (first = the one used).
 """

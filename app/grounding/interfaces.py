@@ -29,7 +29,9 @@ class Grounder(Protocol):
     name: str
     version: str
 
-    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]: ...
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[Gaussian]: ...
 
     def describe(self) -> dict[str, Any]:
         """Name, version, config and weights checksum, for /v1/models and model cards."""

@@ -61,7 +61,10 @@ class GaussianMixture:
 
     @classmethod
     def from_components(
-        cls, weights: list[float] | np.ndarray, gaussians: list[Gaussian], min_eigenvalue: float = MIN_EIGENVALUE_M2
+        cls,
+        weights: list[float] | np.ndarray,
+        gaussians: list[Gaussian],
+        min_eigenvalue: float = MIN_EIGENVALUE_M2,
     ) -> GaussianMixture:
         """Normalise the weights and repair every covariance onto the PD cone."""
         w = np.asarray(weights, dtype=np.float64)
@@ -98,5 +101,9 @@ class GaussianMixture:
     def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """n draws, shape (n, 3)."""
         counts = rng.multinomial(n, self.weights)
-        draws = [rng.multivariate_normal(m, c, size=k) for m, c, k in zip(self.means, self.covariances, counts, strict=True) if k]
+        draws = [
+            rng.multivariate_normal(m, c, size=k)
+            for m, c, k in zip(self.means, self.covariances, counts, strict=True)
+            if k
+        ]
         return np.concatenate(draws, axis=0) if draws else np.empty((0, 3))

@@ -1,0 +1,103 @@
+"""The stateless language sensor: scene graph + utterance -> hypotheses + Gaussian mixture."""
+
+from __future__ import annotations
+
+import numpy as np
+from fastapi import APIRouter
+
+from app.api.deps import SensorDep, ServicesDep, SettingsDep
+from app.api.errors import error_responses
+from app.api.schemas import (
+    ComponentOut,
+    GroundRequest,
+    GroundResponse,
+    HypothesisOut,
+    MixtureOut,
+    ModelRef,
+    ParseOut,
+    TargetOut,
+)
+from app.errors import LimitExceeded
+from app.grounding.hypotheses import Hypothesis
+from app.grounding.sensor import Grounding, LanguageSensor
+from app.scene_graph.loader import parse_scene_graph
+from app.scene_graph.model import SceneGraph
+from app.settings import Settings
+
+router = APIRouter(prefix="/v1", tags=["grounding"])
+
+
+@router.post(
+    "/ground", operation_id="ground", response_model=GroundResponse, responses=error_responses(400, 422, 503)
+)
+async def ground(
+    body: GroundRequest, sensor: SensorDep, settings: SettingsDep, services: ServicesDep
+) -> GroundResponse:
+    """Ground an utterance in a scene graph: weighted hypotheses and a Gaussian mixture over the target."""
+    return await services.run(ground_request, body, sensor, settings)
+
+
+def resolve_scene_graph(
+    payload: SceneGraph | dict, settings: Settings, field: str = "scene_graph"
+) -> SceneGraph:
+    """The request's scene graph as a native one (normalised from another format), within the object cap."""
+    if isinstance(payload, SceneGraph):
+        if len(payload.objects) > settings.max_objects:
+            msg = f"{field}: {len(payload.objects)} objects exceed the limit of {settings.max_objects}"
+            raise LimitExceeded(msg, limit_name="max_objects")
+        return payload
+    return parse_scene_graph(payload, max_objects=settings.max_objects)
+
+
+def ground_request(body: GroundRequest, sensor: LanguageSensor, settings: Settings) -> GroundResponse:
+    scene_graph = resolve_scene_graph(body.scene_graph, settings)
+    if body.query_points is not None and len(body.query_points) > settings.max_query_points:
+        msg = f"query_points: {len(body.query_points)} points exceed the limit of {settings.max_query_points}"
+        raise LimitExceeded(msg, limit_name="max_query_points")
+    caller = body.options.hypotheses if body.options else None
+    hypotheses = (
+        [Hypothesis(tuple(h.anchor_ids), h.relation, weight=h.weight) for h in caller]
+        if caller is not None
+        else None
+    )
+    result = sensor.ground(scene_graph, body.utterance, hypotheses)
+    densities = None
+    if body.query_points:
+        densities = result.mixture.logpdf(np.asarray(body.query_points, dtype=np.float64)).tolist()
+    return to_response(result, sensor, densities)
+
+
+def to_response(result: Grounding, sensor: LanguageSensor, densities: list[float] | None) -> GroundResponse:
+    parse = result.proposal.parse
+    mixture = result.mixture
+    return GroundResponse(
+        target=TargetOut(label=parse.target),
+        parse=ParseOut(
+            target=parse.target,
+            relation=parse.relation,
+            relation_phrase=parse.relation_phrase,
+            anchor_phrases=list(parse.anchor_phrases),
+            region_phrase=parse.region_phrase,
+        ),
+        grounded=result.grounded,
+        reason=result.proposal.reason,
+        hypotheses=[
+            HypothesisOut(
+                anchor_ids=list(h.anchor_ids),
+                relation=h.relation,
+                region_id=h.region_id,
+                weight=h.weight,
+                text=h.text,
+            )
+            for h in result.hypotheses
+        ],
+        mixture=MixtureOut(
+            components=[
+                ComponentOut(weight=float(w), mean=m.tolist(), covariance=c.tolist())
+                for w, m, c in zip(mixture.weights, mixture.means, mixture.covariances, strict=True)
+            ]
+        ),
+        query_log_density=densities,
+        model=ModelRef(name=sensor.grounder.name, version=sensor.grounder.version),
+        timings_ms=result.timings_ms,
+    )

@@ -1,0 +1,119 @@
+"""A simple lexical hypothesis proposer: anchors are objects whose label names the anchor phrase.
+
+Every matching object is equally plausible (uniform weights): honest about referential ambiguity,
+blind to everything else. The calibrated built-in proposer replaces it behind the same interface.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from app.grounding.hypotheses import Hypothesis, Proposal, UtteranceParse
+from app.grounding.parsing import normalise, parse_utterance
+from app.grounding.relations import Relation
+from app.scene_graph.model import SceneGraph, SceneObject
+
+_IRREGULAR_PLURALS = {"shelves": "shelf", "knives": "knife", "leaves": "leaf", "people": "person"}
+
+
+def singular(word: str) -> str:
+    """Rough English singular of one word ("boxes" -> "box", "chairs" -> "chair", "glass" stays)."""
+    if word in _IRREGULAR_PLURALS:
+        return _IRREGULAR_PLURALS[word]
+    if len(word) > 4 and word.endswith("ies"):
+        return word[:-3] + "y"
+    if len(word) > 3 and word.endswith(("ches", "shes", "xes", "sses")):
+        return word[:-2]
+    if len(word) > 2 and word.endswith("s") and not word.endswith(("ss", "us", "is")):
+        return word[:-1]
+    return word
+
+
+def label_tokens(text: str) -> tuple[str, ...]:
+    return tuple(singular(w) for w in normalise(text.replace("_", " ")).split())
+
+
+def match_score(anchor_phrase: str, label: str) -> int:
+    """2: the label is the phrase; 1: the phrase's head noun (last word) is a word of the label; else 0."""
+    phrase, words = label_tokens(anchor_phrase), label_tokens(label)
+    if not phrase or not words:
+        return 0
+    if phrase == words or phrase[-len(words) :] == words:
+        return 2
+    return 1 if phrase[-1] in words else 0
+
+
+def matching_objects(
+    scene_graph: SceneGraph, anchor_phrase: str, region_ids: set[str] | None
+) -> list[SceneObject]:
+    """Objects of the best match score (> 0), restricted to `region_ids` when given."""
+    scored = [(match_score(anchor_phrase, o.label), o) for o in scene_graph.objects]
+    if region_ids is not None:
+        scored = [(s, o) for s, o in scored if o.region_id in region_ids]
+    best = max((s for s, _ in scored), default=0)
+    return [o for s, o in scored if s == best and best > 0]
+
+
+def regions_named(scene_graph: SceneGraph, region_phrase: str | None) -> set[str] | None:
+    if not region_phrase:
+        return None
+    wanted = set(label_tokens(region_phrase))
+    ids = {r.id for r in scene_graph.regions if set(label_tokens(r.name)) & wanted}
+    return ids or None
+
+
+class LexicalProposer:
+    """Uniform weights over every object whose label matches the anchor phrase (pairs for "between")."""
+
+    name = "lexical"
+
+    def __init__(self, max_hypotheses: int = 5) -> None:
+        self.max_hypotheses = max_hypotheses
+
+    def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal:
+        region_names = tuple(normalise(r.name) for r in scene_graph.regions if r.name)
+        parse = parse_utterance(utterance, region_names)
+        if not parse.anchor_phrases:
+            return Proposal(parse, (), grounded=False, reason="the utterance names no anchor object")
+        region_ids = regions_named(scene_graph, parse.region_phrase)
+        candidates = [matching_objects(scene_graph, p, region_ids) for p in parse.anchor_phrases]
+        missing = [p for p, c in zip(parse.anchor_phrases, candidates, strict=True) if not c]
+        if missing:
+            reason = f"no object in the scene graph matches {', '.join(repr(m) for m in missing)}"
+            return Proposal(parse, (), grounded=False, reason=reason)
+        groups = self._anchor_groups(parse, candidates)[: self.max_hypotheses]
+        weight = 1.0 / len(groups)
+        hypotheses = tuple(
+            Hypothesis(
+                anchor_ids=tuple(o.id for o in group),
+                relation=parse.relation,
+                weight=weight,
+                region_id=group[0].region_id,
+                text=describe(parse, group),
+            )
+            for group in groups
+        )
+        return Proposal(parse, hypotheses)
+
+    @staticmethod
+    def _anchor_groups(
+        parse: UtteranceParse, candidates: list[list[SceneObject]]
+    ) -> list[tuple[SceneObject, ...]]:
+        if parse.relation is not Relation.BETWEEN or len(candidates) < 2:
+            return [(o,) for o in candidates[0]]
+        # Pairs of distinct objects, the closest pairs first: "between" anchors are usually near each other.
+        pairs = [(a, b) for a, b in itertools.product(candidates[0], candidates[1]) if a.id != b.id]
+        pairs.sort(key=lambda ab: float(np.linalg.norm(np.subtract(ab[0].center, ab[1].center))))
+        unique: dict[frozenset[str], tuple[SceneObject, ...]] = {}
+        for a, b in pairs:
+            unique.setdefault(frozenset((a.id, b.id)), (a, b))
+        return list(unique.values())
+
+
+def describe(parse: UtteranceParse, anchors: tuple[SceneObject, ...]) -> str:
+    """ "the backpack on table 7" style text for one hypothesis."""
+    names = " and ".join(f"{o.label} {o.id}" for o in anchors)
+    target = parse.target or "target"
+    return f"the {target} {parse.relation.value} {names}"

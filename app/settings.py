@@ -1,0 +1,46 @@
+"""All service settings in one place: environment variables prefixed `VLMAP_` (or a `.env` file)."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+class Settings(BaseSettings):
+    """Embedded defaults run the whole service on one machine with no external server."""
+
+    model_config = SettingsConfigDict(env_prefix="VLMAP_", env_file=".env", extra="ignore")
+
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=1, le=65535)
+
+    grounder: Literal["geometric", "fixed"] = Field(
+        default="geometric", description="Spatial grounder behind /v1/ground."
+    )
+    model_dir: Path = Field(default=REPO_ROOT / "models", description="Where shipped weights live.")
+
+    max_body_bytes: int = Field(
+        default=16 * 2**20, ge=1024, description="Largest request body accepted (413 above)."
+    )
+    max_objects: int = Field(
+        default=2000, ge=1, description="Objects allowed in one scene graph (422 above)."
+    )
+    max_hypotheses: int = Field(default=5, ge=1, le=5, description="Hypotheses kept per utterance.")
+    max_query_points: int = Field(default=10_000, ge=0, description="query_points allowed per /v1/ground.")
+    max_utterance_chars: int = Field(default=1000, ge=1)
+
+    log_level: str = "INFO"
+    log_json: bool = Field(default=True, description="One JSON object per log line (false: plain text).")
+    worker_threads: int = Field(default=8, ge=1, description="Threads for CPU-bound work off the event loop.")
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process-wide settings, read once from the environment."""
+    return Settings()

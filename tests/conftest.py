@@ -1,0 +1,37 @@
+"""Shared fixtures: real scenes from tests/resources and an in-process service."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from app.api.app import create_app
+from app.settings import Settings
+
+RESOURCES = Path(__file__).parent / "resources"
+
+
+def load_resource_json(relative: str) -> Any:
+    return json.loads((RESOURCES / relative).read_text(encoding="utf-8"))
+
+
+@pytest.fixture
+def scene_graph_dict() -> dict[str, Any]:
+    """ScanNet scene0590_00 (60 objects: 2 tables, 3 chairs, 5 bags, a desk, a lamp, ...)."""
+    return load_resource_json("scenes/scannet_scene0590_00.json")
+
+
+@pytest.fixture
+def settings() -> Settings:
+    return Settings(_env_file=None, log_json=False)  # type: ignore[call-arg]
+
+
+@pytest.fixture
+def client(settings: Settings) -> Iterator[TestClient]:
+    with TestClient(create_app(settings)) as test_client:
+        yield test_client

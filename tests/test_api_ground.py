@@ -1,0 +1,173 @@
+"""POST /v1/ground end to end, in process."""
+
+from __future__ import annotations
+
+import copy
+import json
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from app.api.app import create_app
+from app.grounding.mixture import Gaussian, GaussianMixture
+from app.settings import Settings
+
+
+def _ground(client: TestClient, scene_graph: Any, utterance: str, **extra: Any) -> Any:
+    return client.post("/v1/ground", json={"scene_graph": scene_graph, "utterance": utterance, **extra})
+
+
+def _assert_valid_mixture(mixture: dict[str, Any]) -> None:
+    weights = [c["weight"] for c in mixture["components"]]
+    assert sum(weights) == pytest.approx(1.0)
+    for component in mixture["components"]:
+        cov = np.array(component["covariance"])
+        assert cov.shape == (3, 3)
+        np.testing.assert_allclose(cov, cov.T)
+        assert np.linalg.eigvalsh(cov).min() > 0
+
+
+def test_two_tables_give_two_equally_weighted_hypotheses(client: TestClient, scene_graph_dict: dict) -> None:
+    response = _ground(client, scene_graph_dict, "I left my backpack on the table")
+    assert response.status_code == 200, response.text
+    body = response.json()
+    tables = {o["id"] for o in scene_graph_dict["objects"] if o["label"] == "table"}
+    assert len(tables) == 2
+    assert {h["anchor_ids"][0] for h in body["hypotheses"]} == tables
+    assert [h["weight"] for h in body["hypotheses"]] == pytest.approx([0.5, 0.5])
+    assert body["target"] == {"label": "backpack"}
+    assert body["grounded"] is True
+    assert body["parse"]["relation"] == "on"
+    assert body["model"]["name"] == "geometric"
+    assert set(body["timings_ms"]) == {"proposer", "grounder"}
+    _assert_valid_mixture(body["mixture"])
+    # Each component sits just above its table's top surface.
+    by_id = {o["id"]: o for o in scene_graph_dict["objects"]}
+    for h, c in zip(body["hypotheses"], body["mixture"]["components"], strict=True):
+        table = by_id[h["anchor_ids"][0]]
+        top = table["center"][2] + table["size"][2] / 2
+        assert c["mean"][2] == pytest.approx(top + 0.1)
+
+
+def test_query_points_return_the_mixture_log_density(client: TestClient, scene_graph_dict: dict) -> None:
+    table = next(o for o in scene_graph_dict["objects"] if o["label"] == "desk")
+    on_top = [table["center"][0], table["center"][1], table["center"][2] + table["size"][2] / 2 + 0.1]
+    far = [on_top[0] + 5.0, on_top[1] + 5.0, on_top[2]]
+    body = _ground(client, scene_graph_dict, "the mouse is on the desk", query_points=[on_top, far]).json()
+    comps = body["mixture"]["components"]
+    mixture = GaussianMixture.from_components(
+        [c["weight"] for c in comps],
+        [Gaussian(np.array(c["mean"]), np.array(c["covariance"])) for c in comps],
+    )
+    np.testing.assert_allclose(body["query_log_density"], mixture.logpdf(np.array([on_top, far])), rtol=1e-9)
+    assert body["query_log_density"][0] > body["query_log_density"][1]
+
+
+def test_between_pairs_two_anchors(client: TestClient, scene_graph_dict: dict) -> None:
+    body = _ground(client, scene_graph_dict, "the umbrella is between the desk and the lamp").json()
+    assert body["hypotheses"][0]["relation"] == "between"
+    assert len(body["hypotheses"][0]["anchor_ids"]) == 2
+    _assert_valid_mixture(body["mixture"])
+
+
+def test_caller_hypotheses_are_grounded_as_given(client: TestClient, scene_graph_dict: dict) -> None:
+    desk = next(o["id"] for o in scene_graph_dict["objects"] if o["label"] == "desk")
+    options = {"hypotheses": [{"anchor_ids": [desk], "relation": "near", "weight": 3}]}
+    body = _ground(client, scene_graph_dict, "my bag is somewhere there", options=options).json()
+    assert [(h["anchor_ids"], h["relation"], h["weight"]) for h in body["hypotheses"]] == [
+        ([desk], "near", 1.0)
+    ]
+    assert "proposer" not in body["timings_ms"]
+
+
+@pytest.mark.parametrize(
+    ("hypothesis", "fragment"),
+    [
+        ({"anchor_ids": ["no-such-id"], "relation": "on"}, "unknown object id"),
+        ({"anchor_ids": ["1"], "relation": "between"}, "takes 2 anchor id"),
+    ],
+)
+def test_bad_caller_hypotheses_are_422_naming_the_field(
+    client: TestClient, scene_graph_dict: dict, hypothesis: dict, fragment: str
+) -> None:
+    response = _ground(client, scene_graph_dict, "x on y", options={"hypotheses": [hypothesis]})
+    assert response.status_code == 422
+    assert response.json()["field"] == "options.hypotheses.0.anchor_ids"
+    assert fragment in response.json()["message"]
+
+
+def test_unmatched_anchor_falls_back_to_a_broad_prior(client: TestClient, scene_graph_dict: dict) -> None:
+    body = _ground(client, scene_graph_dict, "my keys are on the piano").json()
+    assert body["grounded"] is False
+    assert "piano" in body["reason"]
+    assert body["hypotheses"] == []
+    assert len(body["mixture"]["components"]) == 1
+    _assert_valid_mixture(body["mixture"])
+    # Broad: the prior spreads over the room (variance = width^2 / 12 of the scene's box).
+    assert min(np.diag(body["mixture"]["components"][0]["covariance"])[:2]) > 0.5
+
+
+def _mutated(scene_graph: dict, path: tuple[Any, ...], value: Any) -> dict:
+    out = copy.deepcopy(scene_graph)
+    node = out
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    return out
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "field", "fragment"),
+    [
+        (("objects", 3, "size"), [0.5, 0.0, 0.2], "scene_graph.objects.3.size", "strictly positive"),
+        (("objects", 4, "size"), [0.5, -1.0, 0.2], "scene_graph.objects.4.size", "strictly positive"),
+        (("objects", 5, "region_id"), "nowhere", "scene_graph", "objects[5].region_id: unknown region id"),
+        (("objects", 6, "id"), "0", "scene_graph", "duplicate object ids"),
+        (("objects", 2, "center"), [1.0, 2.0], "scene_graph.objects.2.center", "at least 3"),
+        (("objects", 2, "label"), "", "scene_graph.objects.2.label", "at least 1"),
+    ],
+)
+def test_bad_scene_graphs_are_422_naming_the_field(
+    client: TestClient, scene_graph_dict: dict, path: tuple, value: Any, field: str, fragment: str
+) -> None:
+    response = _ground(client, _mutated(scene_graph_dict, path, value), "the bag is on the table")
+    assert response.status_code == 422, response.text
+    body = response.json()
+    assert body["code"] == "invalid_input"
+    assert body["field"] == field
+    assert fragment in body["message"]
+
+
+@pytest.mark.parametrize("token", ["NaN", "Infinity", "-Infinity"])
+def test_non_finite_numbers_are_422(client: TestClient, scene_graph_dict: dict, token: str) -> None:
+    text = json.dumps({"scene_graph": scene_graph_dict, "utterance": "the bag is on the table"})
+    first_center = json.dumps(scene_graph_dict["objects"][0]["center"])
+    text = text.replace(first_center, f"[{token}, 1.0, 1.0]", 1)
+    response = client.post("/v1/ground", content=text, headers={"content-type": "application/json"})
+    assert response.status_code == 422, response.text
+    assert response.json()["field"] == "scene_graph.objects.0.center"
+    assert "finite" in response.json()["message"]
+
+
+def test_object_cap_is_enforced(scene_graph_dict: dict) -> None:
+    settings = Settings(_env_file=None, max_objects=10, log_json=False)  # type: ignore[call-arg]
+    with TestClient(create_app(settings)) as small:
+        response = _ground(small, scene_graph_dict, "the bag is on the table")
+    assert response.status_code == 422
+    assert response.json()["code"] == "limit_exceeded"
+    assert "60 objects exceed the limit of 10" in response.json()["message"]
+
+
+def test_request_id_is_echoed_or_created(client: TestClient) -> None:
+    assert client.get("/healthz", headers={"X-Request-ID": "abc-123"}).headers["x-request-id"] == "abc-123"
+    generated = client.get("/healthz").headers["x-request-id"]
+    assert len(generated) == 32
+
+
+def test_errors_carry_the_request_id(client: TestClient) -> None:
+    response = client.post("/v1/ground", json={"utterance": "x"}, headers={"X-Request-ID": "req-9"})
+    assert response.status_code == 422
+    assert response.json()["request_id"] == "req-9"
+    assert response.json()["field"] == "scene_graph"

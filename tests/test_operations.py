@@ -1,0 +1,61 @@
+"""Health, readiness, model listing and Prometheus metrics."""
+
+from __future__ import annotations
+
+import re
+
+from fastapi.testclient import TestClient
+
+from app.api.app import create_app
+from app.settings import Settings
+
+
+def test_health_and_readiness(client: TestClient) -> None:
+    assert client.get("/healthz").json() == {"status": "ok"}
+    assert client.get("/readyz").json() == {"status": "ready", "grounder": "geometric"}
+
+
+def test_not_ready_before_the_model_is_loaded(settings: Settings) -> None:
+    app = create_app(settings)
+    # Without entering the lifespan, the sensor is never built: readiness must say so.
+    client = TestClient(app)
+    response = client.get("/readyz")
+    assert response.status_code == 503
+    assert response.json()["code"] == "unavailable"
+    assert client.get("/healthz").status_code == 200
+
+
+def test_models_lists_grounder_and_proposer(client: TestClient) -> None:
+    models = client.get("/v1/models").json()["models"]
+    assert [(m["role"], m["name"]) for m in models] == [("grounder", "geometric"), ("proposer", "lexical")]
+    assert models[0]["checksum"].startswith("sha256:")
+    assert "near_margin" in models[0]["config"]
+
+
+def _sample(text: str, name: str, **labels: str) -> float:
+    for line in text.splitlines():
+        if not line.startswith(name + "{") and not line.startswith(name + " "):
+            continue
+        found = dict(re.findall(r'(\w+)="([^"]*)"', line))
+        if all(found.get(k) == v for k, v in labels.items()):
+            return float(line.rsplit(" ", 1)[1])
+    raise AssertionError(f"no sample {name} {labels} in metrics")
+
+
+def test_metrics_count_requests_and_time_inference_stages(client: TestClient, scene_graph_dict: dict) -> None:
+    for _ in range(2):
+        client.post(
+            "/v1/ground", json={"scene_graph": scene_graph_dict, "utterance": "the bag is on the desk"}
+        )
+    client.post("/v1/ground", json={"utterance": "missing scene graph"})
+    text = client.get("/metrics").text
+    assert _sample(text, "vlmap_http_requests_total", method="POST", route="/v1/ground", status="200") == 2
+    assert _sample(text, "vlmap_http_requests_total", method="POST", route="/v1/ground", status="422") == 1
+    assert _sample(text, "vlmap_http_request_duration_seconds_count", method="POST", route="/v1/ground") == 3
+    assert _sample(text, "vlmap_inference_duration_seconds_count", stage="proposer") == 2
+    assert _sample(text, "vlmap_inference_duration_seconds_count", stage="grounder") == 2
+    # The /metrics request itself is in flight while it is rendered.
+    assert _sample(text, "vlmap_http_requests_in_flight") == 1
+    # Route templates, never raw paths, so the label set stays bounded.
+    client.get("/no/such/path/123")
+    assert 'route="unmatched"' in client.get("/metrics").text
