@@ -1,0 +1,22 @@
+# The same install steps as the Makefile's `venv` target, then `vlmap serve` as a non-root user.
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 \
+    VLMAP_HOST=0.0.0.0 VLMAP_PORT=8000
+RUN useradd --create-home --uid 10001 vlmap
+WORKDIR /srv/vlmap
+
+COPY requirements.lock pyproject.toml README.md ./
+COPY app ./app
+COPY models ./models
+# torch==2.13.0 is pinned in requirements.lock: a CPU build (never a bare `torch`).
+RUN python -m venv .venv \
+ && .venv/bin/python -m pip install --quiet --upgrade pip \
+ && .venv/bin/python -m pip install --quiet -r requirements.lock \
+ && .venv/bin/python -m pip install --quiet --no-deps -e .
+
+USER vlmap
+EXPOSE 8000
+HEALTHCHECK --interval=15s --timeout=3s --start-period=60s --retries=3 \
+  CMD .venv/bin/python -c "import urllib.request,sys; sys.exit(urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=2).status != 200)"
+CMD [".venv/bin/vlmap", "serve"]
