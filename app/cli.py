@@ -12,6 +12,9 @@ from collections.abc import Sequence
 _COMMAND_MODULES = {
     "serve": "app.api.cli",
     "openapi": "app.api.cli",
+    "keys": "app.api.cli",
+    "data": "app.data.cli",
+    "train": "app.lsm.cli",
 }
 
 

@@ -41,3 +41,22 @@ class ModelUnavailable(VLMapError):
 
 class UnsupportedMediaType(InvalidInput):
     """A body arrived in a content type the endpoint does not read."""
+
+
+class StoreUnavailable(ModelUnavailable):
+    """The session store (Redis, the data directory) cannot be reached or written; retrying may succeed."""
+
+
+class LLMResponseError(ModelUnavailable):
+    """An LLM endpoint answered, but not with what was asked for (no JSON object, wrong shape, NaN).
+
+    A `ModelUnavailable` because, to a caller, the model could not serve this request (the API answers 503).
+    """
+
+
+class Unauthenticated(VLMapError):
+    """No API key, or one the service does not know."""
+
+
+class Forbidden(VLMapError):
+    """The API key is valid but its role or robot ids do not cover this operation."""

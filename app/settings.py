@@ -35,6 +35,16 @@ class Settings(BaseSettings):
     max_query_points: int = Field(default=10_000, ge=0, description="query_points allowed per /v1/ground.")
     max_utterance_chars: int = Field(default=1000, ge=1)
 
+    api_keys_file: Path | None = Field(
+        default=None, description='JSON list of {"name", "role", "sha256", "robot_ids"} (see `vlmap keys new`).'
+    )
+    api_keys: str | None = Field(default=None, description="The same JSON list, inline (when no file is given).")
+    allow_open: bool = Field(
+        default=False, description="Serve without keys on a non-loopback address (refused otherwise)."
+    )
+    rate_limit_per_s: float = Field(default=200.0, ge=0, description="Requests per second per key (0: off).")
+    rate_limit_burst: float = Field(default=400.0, ge=1, description="Burst allowance of the per-key rate.")
+
     log_level: str = "INFO"
     log_json: bool = Field(default=True, description="One JSON object per log line (false: plain text).")
     worker_threads: int = Field(default=8, ge=1, description="Threads for CPU-bound work off the event loop.")

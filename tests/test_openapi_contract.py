@@ -12,6 +12,7 @@ from hypothesis import HealthCheck, settings
 from schemathesis.specs.openapi.checks import positive_data_acceptance
 
 from app.api.app import create_app
+from app.api.auth import digest, new_key
 from app.api.cli import openapi_spec
 from app.api.observability import Metrics
 from app.api.services import build_sensor
@@ -43,7 +44,13 @@ def test_every_operation_has_a_stable_id_a_summary_and_documented_errors() -> No
     assert len(ids) == len(set(ids))
 
 
-_settings = Settings(_env_file=None, log_json=False)  # type: ignore[call-arg]
+_ADMIN_KEY = new_key()
+_settings = Settings(  # type: ignore[call-arg]
+    _env_file=None,
+    log_json=False,
+    rate_limit_per_s=0,
+    api_keys=json.dumps([{"name": "ci-admin", "role": "admin", "sha256": digest(_ADMIN_KEY)}]),
+)
 _app = create_app(_settings, sensor=build_sensor(_settings, Metrics()))
 schema = schemathesis.openapi.from_asgi("/openapi.json", _app)
 
@@ -57,4 +64,6 @@ def test_api_keeps_its_contract(case: schemathesis.Case) -> None:
     Positive-data acceptance is not required: duplicate ids, dangling region ids, object caps and unknown
     anchor ids are rules JSON Schema cannot state, so a schema-valid body may get the documented 422.
     """
-    case.call_and_validate(excluded_checks=[positive_data_acceptance])
+    case.call_and_validate(
+        headers={"Authorization": f"Bearer {_ADMIN_KEY}"}, excluded_checks=[positive_data_acceptance]
+    )

@@ -11,6 +11,7 @@ from fastapi import FastAPI
 
 from app import __version__
 from app.api.errors import install_error_handlers
+from app.api.limits import BodySizeLimitMiddleware
 from app.api.observability import Metrics, RequestContextMiddleware
 from app.api.routes import ground, health, metrics, models, scene_graphs
 from app.api.services import Services, build_sensor
@@ -49,5 +50,6 @@ def create_app(settings: Settings | None = None, sensor: LanguageSensor | None =
     install_error_handlers(app)
     for module in (health, models, metrics, ground, scene_graphs):
         app.include_router(module.router)
-    app.add_middleware(RequestContextMiddleware, metrics=services.metrics)
+    app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
+    app.add_middleware(RequestContextMiddleware, metrics=services.metrics)  # outermost: sees every answer
     return app

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
 import logging
 import sys
@@ -15,7 +16,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     serve = sub.add_parser("serve", help="run the HTTP service")
     serve.add_argument("--host", default=None, help="bind address (default: settings, 127.0.0.1)")
     serve.add_argument("--port", type=int, default=None, help="port (default: settings, 8000)")
+    serve.add_argument(
+        "--allow-open", action="store_true", help="serve without API keys on a non-loopback address"
+    )
     serve.set_defaults(func=serve_command)
+
+    keys = sub.add_parser("keys", help="API key management")
+    keys_sub = keys.add_subparsers(dest="keys_command", required=True)
+    new = keys_sub.add_parser("new", help="mint a key: prints the key once and the record for the key file")
+    new.add_argument("--name", required=True)
+    new.add_argument("--role", required=True, choices=["robot", "viewer", "admin"])
+    new.add_argument("--robot-id", action="append", default=[], help="robot ids a robot key may act for")
+    new.set_defaults(func=new_key_command)
 
     spec = sub.add_parser("openapi", help="write the OpenAPI contract (sorted keys)")
     spec.add_argument("--out", type=Path, default=None, help="file to write (default: stdout)")
@@ -26,6 +38,7 @@ def serve_command(args: argparse.Namespace) -> int:
     import uvicorn
 
     from app.api.app import create_app
+    from app.api.auth import KeyRing
     from app.api.observability import configure_logging
     from app.settings import get_settings
 
@@ -33,8 +46,37 @@ def serve_command(args: argparse.Namespace) -> int:
     host = args.host or settings.host
     port = args.port or settings.port
     configure_logging(settings.log_level, settings.log_json)
+    keyring = KeyRing.load(settings.api_keys_file, settings.api_keys)
+    if keyring.is_open:
+        if not is_loopback(host) and not (args.allow_open or settings.allow_open):
+            log.error(
+                "refusing to serve %s without API keys: set VLMAP_API_KEYS_FILE (see `vlmap keys new`), "
+                "or pass --allow-open / VLMAP_ALLOW_OPEN=true to run open on purpose",
+                host,
+            )
+            return 2
+        log.warning("no API keys configured: every request is accepted (fine on loopback for development)")
     log.info("starting", extra={"host": host, "port": port, "grounder": settings.grounder})
     uvicorn.run(create_app(settings), host=host, port=port, log_config=None, access_log=False)
+    return 0
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def new_key_command(args: argparse.Namespace) -> int:
+    from app.api.auth import digest, new_key
+
+    key = new_key()
+    record = {"name": args.name, "role": args.role, "sha256": digest(key), "robot_ids": args.robot_id}
+    print(f"key (shown once, give it to the client): {key}")
+    print(f"record (add it to the keys file): {json.dumps(record)}")
     return 0
 
 

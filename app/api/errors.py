@@ -14,10 +14,12 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api.observability import request_id_var
 from app.errors import (
+    Forbidden,
     InvalidInput,
     LimitExceeded,
     ModelUnavailable,
     NotFound,
+    Unauthenticated,
     UnsupportedMediaType,
     VLMapError,
 )
@@ -60,7 +62,7 @@ def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
     return {s: {"model": ErrorResponse, "description": text.get(s, "Error")} for s in statuses}
 
 
-def _body(
+def error_body(
     code: str, message: str, field: str | None = None, errors: list[dict[str, Any]] | None = None
 ) -> dict:
     return ErrorResponse(
@@ -84,37 +86,47 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
     first = errors[0] if errors else {"loc": (), "msg": "invalid request"}
     field = field_path(first.get("loc", ()))
     message = f"{field}: {first.get('msg')}" if field else str(first.get("msg"))
-    return JSONResponse(status_code=422, content=_body("invalid_input", message, field or None, errors))
+    return JSONResponse(status_code=422, content=error_body("invalid_input", message, field or None, errors))
 
 
 async def _domain_error(request: Request, exc: VLMapError) -> JSONResponse:
+    if isinstance(exc, Unauthenticated):
+        headers = {"WWW-Authenticate": "Bearer"}
+        return JSONResponse(status_code=401, content=error_body("unauthenticated", str(exc)), headers=headers)
+    if isinstance(exc, Forbidden):
+        return JSONResponse(status_code=403, content=error_body("forbidden", str(exc)))
     if isinstance(exc, UnsupportedMediaType):
-        return JSONResponse(status_code=415, content=_body("unsupported_media_type", str(exc), exc.field))
+        return JSONResponse(
+            status_code=415, content=error_body("unsupported_media_type", str(exc), exc.field)
+        )
     if isinstance(exc, InvalidInput):
-        return JSONResponse(status_code=422, content=_body("invalid_input", str(exc), exc.field))
+        return JSONResponse(status_code=422, content=error_body("invalid_input", str(exc), exc.field))
     if isinstance(exc, LimitExceeded):
         status = _LIMIT_STATUS.get(exc.limit_name, 422)
-        return JSONResponse(status_code=status, content=_body("limit_exceeded", str(exc), exc.limit_name))
+        return JSONResponse(
+            status_code=status, content=error_body("limit_exceeded", str(exc), exc.limit_name)
+        )
     if isinstance(exc, NotFound):
-        return JSONResponse(status_code=404, content=_body("not_found", str(exc)))
+        return JSONResponse(status_code=404, content=error_body("not_found", str(exc)))
     if isinstance(exc, ModelUnavailable):
-        return JSONResponse(status_code=503, content=_body("unavailable", str(exc)))
+        return JSONResponse(status_code=503, content=error_body("unavailable", str(exc)))
     log.error("unmapped domain error", exc_info=exc)
-    return JSONResponse(status_code=500, content=_body("internal_error", "internal error"))
+    return JSONResponse(status_code=500, content=error_body("internal_error", "internal error"))
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-    code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
+    codes = {404: "not_found", 405: "method_not_allowed", 413: "limit_exceeded"}
+    code = codes.get(exc.status_code, "http_error")
     return JSONResponse(
         status_code=exc.status_code,
-        content=_body(code, str(exc.detail)),
+        content=error_body(code, str(exc.detail)),
         headers=getattr(exc, "headers", None),
     )
 
 
 async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
     log.error("unhandled error", exc_info=exc)
-    return JSONResponse(status_code=500, content=_body("internal_error", "internal error"))
+    return JSONResponse(status_code=500, content=error_body("internal_error", "internal error"))
 
 
 def install_error_handlers(app: FastAPI) -> None:

@@ -11,6 +11,7 @@ from typing import Any, TypeVar
 import anyio.to_thread
 from anyio import CapacityLimiter
 
+from app.api.auth import KeyRing, RateLimiter
 from app.api.observability import Metrics
 from app.grounding.geometric import FixedGrounder, GeometricGrounder
 from app.grounding.interfaces import Grounder
@@ -40,9 +41,13 @@ class Services:
     metrics: Metrics
     sensor: LanguageSensor | None = None
     limiter: CapacityLimiter = field(init=False)
+    keyring: KeyRing = field(init=False)
+    rate_limiter: RateLimiter = field(init=False)
 
     def __post_init__(self) -> None:
         self.limiter = CapacityLimiter(self.settings.worker_threads)
+        self.keyring = KeyRing.load(self.settings.api_keys_file, self.settings.api_keys)
+        self.rate_limiter = RateLimiter(self.settings.rate_limit_per_s, self.settings.rate_limit_burst)
 
     async def run(self, func: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Run CPU-bound work in the worker pool so the event loop keeps serving other requests."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from fastapi import APIRouter
 
-from app.api.deps import SensorDep, ServicesDep, SettingsDep
+from app.api.deps import PrincipalDep, SensorDep, ServicesDep, SettingsDep
 from app.api.errors import error_responses
 from app.api.schemas import (
     ComponentOut,
@@ -28,10 +28,13 @@ router = APIRouter(prefix="/v1", tags=["grounding"])
 
 
 @router.post(
-    "/ground", operation_id="ground", response_model=GroundResponse, responses=error_responses(400, 422, 503)
+    "/ground",
+    operation_id="ground",
+    response_model=GroundResponse,
+    responses=error_responses(400, 401, 413, 422, 429, 503),
 )
 async def ground(
-    body: GroundRequest, sensor: SensorDep, settings: SettingsDep, services: ServicesDep
+    body: GroundRequest, sensor: SensorDep, settings: SettingsDep, services: ServicesDep, _: PrincipalDep
 ) -> GroundResponse:
     """Ground an utterance in a scene graph: weighted hypotheses and a Gaussian mixture over the target."""
     return await services.run(ground_request, body, sensor, settings)

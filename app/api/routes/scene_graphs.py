@@ -7,9 +7,9 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
 
-from app.api.deps import ServicesDep, SettingsDep
+from app.api.deps import PrincipalDep, ServicesDep, SettingsDep
 from app.api.errors import error_responses
-from app.errors import InvalidSceneGraph, LimitExceeded, UnsupportedMediaType
+from app.errors import InvalidSceneGraph, UnsupportedMediaType
 from app.scene_graph.loader import SceneGraphFormat, parse_scene_graph
 from app.scene_graph.model import SceneGraph
 
@@ -45,20 +45,18 @@ _REQUEST_BODY = {
     "/scene-graphs/normalize",
     operation_id="normalize_scene_graph",
     response_model=SceneGraph,
-    responses=error_responses(400, 413, 415, 422),
+    responses=error_responses(400, 401, 413, 415, 422, 429),
     openapi_extra={"requestBody": _REQUEST_BODY},
 )
 async def normalize_scene_graph(
     request: Request,
     settings: SettingsDep,
     services: ServicesDep,
+    _: PrincipalDep,
     format: Annotated[SceneGraphFormat | None, Query(description="Skip auto-detection.")] = None,
 ) -> SceneGraph:
     """Read a scene graph in any accepted format and return it as a native SceneGraph."""
     raw = await request.body()
-    if len(raw) > settings.max_body_bytes:
-        msg = f"body of {len(raw)} bytes exceeds the limit of {settings.max_body_bytes}"
-        raise LimitExceeded(msg, limit_name="max_body_bytes")
     content_type = request.headers.get("content-type", "application/json").split(";")[0].strip().lower()
     payload: bytes | dict
     if content_type in _BINARY_TYPES:
