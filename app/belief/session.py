@@ -1,0 +1,488 @@
+"""One robot's belief about one target: the layers (`BeliefState`) and the session record around them.
+
+`BeliefState` owns the two float32 layers of `app.belief.fusion` and a version counter that every update
+increments. `Session` adds what turns raw robot messages into layer increments: the scene graph, the
+grid, the target class, the label map (id -> name) and the default sensor model. Stores (`app.stores`)
+persist sessions; `Session.observation_batch` / `detection_batch` turn a message into an
+`IncrementBatch` (flat voxel indices + increments) that a store logs and applies.
+
+Label matching: a robot label names the target when both normalise to the same key: CamelCase split,
+lower case, "_", "-", "/" and "." read as spaces, the last word made singular ("boxes" -> "box",
+"shelves" -> "shelf"), a few synonyms folded ("sofa" -> "couch", "rucksack" -> "backpack", ...), and spaces
+dropped ("trash can" == "trashcan").
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from app.belief import fusion
+from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_MAX_VOXELS, DEFAULT_VOXEL_SIZE_M, VoxelGrid
+from app.belief.summary import ON_MARGIN_M, PosteriorSummary, summarize
+from app.errors import InvalidInput, LimitExceeded
+from app.grounding.mixture import GaussianMixture
+from app.scene_graph.model import SceneGraph
+
+#: Default sensor model: placeholders for a decent semantic segmenter; set them from its confusion matrix.
+DEFAULT_TRUE_POSITIVE_RATE = 0.9
+DEFAULT_FALSE_POSITIVE_RATE = 0.05
+#: Voxels one observation batch may carry.
+DEFAULT_MAX_BATCH_VOXELS = 4_000_000
+
+_SYNONYMS = {
+    "sofa": "couch",
+    "settee": "couch",
+    "rucksack": "backpack",
+    "knapsack": "backpack",
+    "fridge": "refrigerator",
+    "tv": "television",
+    "tv monitor": "television",
+    "garbage can": "trash can",
+    "garbage bin": "trash can",
+    "trash bin": "trash can",
+    "rubbish bin": "trash can",
+    "waste bin": "trash can",
+    "wastebasket": "trash can",
+    "dustbin": "trash can",
+    "cellphone": "cell phone",
+    "mobile phone": "cell phone",
+    "smartphone": "cell phone",
+    "notebook computer": "laptop",
+    "laptop computer": "laptop",
+    "bedside table": "nightstand",
+    "night table": "nightstand",
+    "bookcase": "bookshelf",
+    "countertop": "counter",
+    "kitchen counter": "counter",
+    "houseplant": "plant",
+    "potted plant": "plant",
+    "computer monitor": "monitor",
+}
+_CAMEL = re.compile(r"(?<=[a-z0-9])(?=[A-Z])")
+_SEPARATORS = re.compile(r"[\s_\-/.]+")
+
+
+def _singular(word: str) -> str:
+    if len(word) > 4 and word.endswith("ies"):
+        return word[:-3] + "y"
+    if len(word) > 5 and word.endswith("lves"):  # shelves, halves
+        return word[:-3] + "f"
+    if word.endswith(("sses", "ches", "shes", "xes")):
+        return word[:-2]
+    if len(word) > 3 and word.endswith("s") and not word.endswith(("ss", "us", "is")):
+        return word[:-1]
+    return word
+
+
+def label_key(name: str) -> str:
+    """The key two label names share when they name the same class (see the module docstring)."""
+    words = _SEPARATORS.sub(" ", _CAMEL.sub(" ", name)).lower().split()
+    if not words:
+        return ""
+    phrase = " ".join([*words[:-1], _singular(words[-1])])
+    phrase = _SYNONYMS.get(phrase, _SYNONYMS.get(phrase.replace(" ", ""), phrase))
+    return phrase.replace(" ", "")
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """tp = P(label = target | target in the voxel), fp = P(label = target | target not in the voxel)."""
+
+    tp: float = DEFAULT_TRUE_POSITIVE_RATE
+    fp: float = DEFAULT_FALSE_POSITIVE_RATE
+
+    def __post_init__(self) -> None:
+        fusion.check_sensor_model(self.tp, self.fp)
+
+
+@dataclass(frozen=True)
+class IncrementBatch:
+    """Vision-layer increments ready to apply: what a store logs and replays."""
+
+    flat_idx: np.ndarray  # (M,) int64 voxel indices, may repeat
+    increments: np.ndarray  # (M,) float32 log-likelihood ratios
+    n_outside: int = 0  # points of the message that fell outside the grid (dropped)
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """What a store answers to an update."""
+
+    session_id: str
+    version: int
+    voxels_updated: int
+    voxels_outside: int = 0
+
+
+@dataclass(frozen=True)
+class SessionInfo:
+    """A session without its scene graph and layers (what listings return)."""
+
+    id: str
+    robot_id: str
+    target_label: str
+    n_voxels: int
+    created_at: float
+    updated_at: float
+    version: int
+
+
+class BeliefState:
+    """The two log-weight layers of one belief (fusion equations (2)-(5)) and its version counter."""
+
+    def __init__(
+        self,
+        grid: VoxelGrid,
+        limits: fusion.LayerLimits | None = None,
+        lang: np.ndarray | None = None,
+        vis: np.ndarray | None = None,
+        version: int = 0,
+    ) -> None:
+        self.grid = grid
+        self.limits = limits or fusion.LayerLimits()
+        self.lang = self._layer(lang, "lang")  # (N,) float32, max 0, >= -lang_span
+        self.vis = self._layer(vis, "vis")  # (N,) float32 in [vis_min, vis_max]
+        self.version = version
+
+    def _layer(self, values: np.ndarray | None, name: str) -> np.ndarray:
+        if values is None:
+            return np.zeros(self.grid.n_voxels, dtype=fusion.LAYER_DTYPE)
+        layer = np.ascontiguousarray(values, dtype=fusion.LAYER_DTYPE)
+        if layer.shape != (self.grid.n_voxels,):
+            msg = f"layer {name} has shape {layer.shape}, the grid needs ({self.grid.n_voxels},)"
+            raise InvalidInput(msg, name)
+        return layer
+
+    @property
+    def nbytes(self) -> int:
+        return self.lang.nbytes + self.vis.nbytes
+
+    def apply_utterance(self, mixture: GaussianMixture) -> int:
+        """Equation (3) for one utterance, then shift and clamp the language layer; returns the version."""
+        fusion.apply_language(self.lang, language_log_likelihood(self.grid, mixture), self.limits.lang_span)
+        self.version += 1
+        return self.version
+
+    def apply_increments(self, batch: IncrementBatch) -> int:
+        """Add a batch of vision-layer increments (equations (4)/(5)) and clamp; returns the new version."""
+        fusion.apply_increments(
+            self.vis, batch.flat_idx, batch.increments, self.limits.vis_min, self.limits.vis_max
+        )
+        self.version += 1
+        return self.version
+
+    def posterior(self) -> np.ndarray:
+        """softmax(lang + vis), (N,) float64."""
+        return fusion.posterior(self.lang, self.vis)
+
+    def summary(self, scene_graph: SceneGraph | None = None, **kwargs: Any) -> PosteriorSummary:
+        return summarize(self.grid, self.lang, self.vis, scene_graph, **kwargs)
+
+    def copy(self) -> BeliefState:
+        return BeliefState(self.grid, self.limits, self.lang.copy(), self.vis.copy(), self.version)
+
+
+def language_log_likelihood(grid: VoxelGrid, mixture: GaussianMixture) -> np.ndarray:
+    """`fusion.language_log_likelihood` with the mixture checked first (a bad one is the client's error)."""
+    means, covs = np.asarray(mixture.means), np.asarray(mixture.covariances)
+    if means.ndim != 2 or means.shape[1:] != (3,) or covs.shape != (len(means), 3, 3):
+        msg = f"mixture needs (K, 3) means and (K, 3, 3) covariances, got {means.shape} and {covs.shape}"
+        raise InvalidInput(msg, "mixture")
+    if not (
+        np.all(np.isfinite(means)) and np.all(np.isfinite(covs)) and np.all(np.isfinite(mixture.weights))
+    ):
+        msg = "mixture parameters must be finite"
+        raise InvalidInput(msg, "mixture")
+    try:
+        return fusion.language_log_likelihood(grid, mixture)
+    except np.linalg.LinAlgError as exc:
+        msg = f"mixture covariances must be positive definite: {exc}"
+        raise InvalidInput(msg, "mixture") from exc
+
+
+class ObservationModel:
+    """Turns robot messages (labels or detector probabilities at points or voxels) into vision increments.
+
+    Holds what that needs of a session: the grid, the target class, the label map and the default sensor
+    model; stores that keep the scene graph apart (Redis) build one without it.
+    """
+
+    def __init__(
+        self, grid: VoxelGrid, target_label: str, label_map: dict[int, str], sensor_model: SensorModel
+    ) -> None:
+        self.grid = grid
+        self.target_label = target_label
+        self.sensor_model = sensor_model
+        self._target_key = label_key(target_label)
+        if not self._target_key:
+            msg = "the target label is empty"
+            raise InvalidInput(msg, "target_label")
+        if any(k < 0 for k in label_map):
+            msg = "label ids must be non-negative integers"
+            raise InvalidInput(msg, "label_map")
+        # label id -> 1 (names the target), 0 (another class), -1 (not in the label map)
+        table = np.full(max(label_map, default=-1) + 1, -1, dtype=np.int8)
+        for label_id, name in label_map.items():
+            table[label_id] = label_key(name) == self._target_key
+        if label_map and not np.any(table == 1):
+            msg = f"no name in label_map matches the target {target_label!r}; name it or send string labels"
+            raise InvalidInput(msg, "label_map")
+        self._class_by_id = table
+
+    def is_target(self, labels: Sequence[int] | Sequence[str] | np.ndarray) -> np.ndarray:
+        """(M,) bool: which labels name the target; integer ids must be in the label map."""
+        arr = np.asarray(labels)
+        if arr.ndim != 1:
+            msg = f"labels must be a flat list, got shape {arr.shape}"
+            raise InvalidInput(msg, "labels")
+        if arr.size == 0:
+            return np.zeros(0, dtype=bool)
+        if arr.dtype.kind in "iu":
+            in_table = (arr >= 0) & (arr < len(self._class_by_id))
+            classes = self._class_by_id[np.where(in_table, arr, 0)] if len(self._class_by_id) else None
+            if classes is None or not in_table.all() or np.any(classes < 0):
+                bad = arr if classes is None else arr[~in_table | (classes < 0)]
+                msg = f"label ids {np.unique(bad)[:10].tolist()} are not in the session's label map"
+                raise InvalidInput(msg, "labels")
+            return classes == 1
+        if arr.dtype.kind == "U":
+            names, inverse = np.unique(arr, return_inverse=True)
+            return np.array([label_key(str(name)) == self._target_key for name in names], dtype=bool)[inverse]
+        msg = f"labels must be all integers (ids in the label map) or all strings, got dtype {arr.dtype}"
+        raise InvalidInput(msg, "labels")
+
+    def voxel_indices(
+        self, n: int, points: np.ndarray | None, flat_idx: np.ndarray | None, max_voxels: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(indices inside the grid, mask of the n inputs kept) from one of points (n, 3) or flat_idx (n,)."""
+        if (points is None) == (flat_idx is None):
+            msg = "give exactly one of points or flat_idx"
+            raise InvalidInput(msg, "points")
+        if n > max_voxels:
+            msg = f"a batch may carry at most {max_voxels} voxels, got {n}"
+            raise LimitExceeded(msg, "max_batch_voxels")
+        if points is not None:
+            pts = np.asarray(points, dtype=np.float64)
+            if pts.shape != (n, 3):
+                msg = f"points must have shape ({n}, 3) to match the labels, got {pts.shape}"
+                raise InvalidInput(msg, "points")
+            if not np.all(np.isfinite(pts)):
+                msg = "points must be finite"
+                raise InvalidInput(msg, "points")
+            flat, inside = self.grid.locate(pts)
+            return flat[inside], inside
+        idx = np.asarray(flat_idx)
+        if idx.shape != (n,) or (n and idx.dtype.kind not in "iu"):
+            msg = f"flat_idx must be ({n},) integers to match the labels, got {idx.shape} {idx.dtype}"
+            raise InvalidInput(msg, "flat_idx")
+        if n and (idx.min() < 0 or idx.max() >= self.grid.n_voxels):
+            msg = f"flat_idx must lie in [0, {self.grid.n_voxels})"
+            raise InvalidInput(msg, "flat_idx")
+        return idx.astype(np.int64), np.ones(n, dtype=bool)
+
+    def observation_batch(
+        self,
+        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        tp: float | None = None,
+        fp: float | None = None,
+        max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
+    ) -> IncrementBatch:
+        """Equation (4) for labelled voxels (points or flat indices); tp/fp override the default model."""
+        is_target = self.is_target(labels)
+        idx, kept = self.voxel_indices(len(is_target), points, flat_idx, max_voxels)
+        tp = self.sensor_model.tp if tp is None else tp
+        fp = self.sensor_model.fp if fp is None else fp
+        increments = fusion.vision_increments(is_target[kept], tp, fp)
+        return IncrementBatch(idx, increments, int(len(kept) - kept.sum()))
+
+    def detection_batch(
+        self,
+        p_target: np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        prior: float = 0.5,
+        max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
+    ) -> IncrementBatch:
+        """Equation (5) for voxels with detector probabilities p_target, computed under its `prior`."""
+        p = np.asarray(p_target, dtype=np.float64).reshape(-1)
+        idx, kept = self.voxel_indices(len(p), points, flat_idx, max_voxels)
+        return IncrementBatch(idx, fusion.detector_increments(p[kept], prior), int(len(kept) - kept.sum()))
+
+
+@dataclass
+class Session:
+    """A robot's search for one target on one scene graph: metadata plus the belief layers."""
+
+    id: str
+    robot_id: str
+    scene_graph: SceneGraph
+    grid: VoxelGrid
+    target_label: str
+    sensor_model: SensorModel
+    label_map: dict[int, str]
+    created_at: float
+    updated_at: float
+    belief: BeliefState
+    observer: ObservationModel = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self.observer = ObservationModel(self.grid, self.target_label, self.label_map, self.sensor_model)
+
+    @property
+    def version(self) -> int:
+        return self.belief.version
+
+    def info(self) -> SessionInfo:
+        return SessionInfo(
+            self.id,
+            self.robot_id,
+            self.target_label,
+            self.grid.n_voxels,
+            self.created_at,
+            self.updated_at,
+            self.version,
+        )
+
+    def observation_batch(
+        self,
+        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        tp: float | None = None,
+        fp: float | None = None,
+        max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
+    ) -> IncrementBatch:
+        """`ObservationModel.observation_batch` for this session."""
+        return self.observer.observation_batch(
+            labels, points=points, flat_idx=flat_idx, tp=tp, fp=fp, max_voxels=max_voxels
+        )
+
+    def detection_batch(
+        self,
+        p_target: np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        prior: float = 0.5,
+        max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
+    ) -> IncrementBatch:
+        """`ObservationModel.detection_batch` for this session."""
+        return self.observer.detection_batch(
+            p_target, points=points, flat_idx=flat_idx, prior=prior, max_voxels=max_voxels
+        )
+
+    def summary(
+        self, *, top_k: int = 5, max_places: int = 10, on_margin: float = ON_MARGIN_M
+    ) -> PosteriorSummary:
+        return self.belief.summary(self.scene_graph, top_k=top_k, max_places=max_places, on_margin=on_margin)
+
+    def meta(self) -> dict[str, Any]:
+        """Everything but the layers, as JSON/msgpack-safe values."""
+        return {
+            "id": self.id,
+            "robot_id": self.robot_id,
+            "scene_graph": self.scene_graph.model_dump(mode="json"),
+            "grid": self.grid.to_dict(),
+            "target_label": self.target_label,
+            "sensor_model": {"tp": self.sensor_model.tp, "fp": self.sensor_model.fp},
+            "label_map": [[k, v] for k, v in sorted(self.label_map.items())],
+            "limits": {
+                "vis_min": self.belief.limits.vis_min,
+                "vis_max": self.belief.limits.vis_max,
+                "lang_span": self.belief.limits.lang_span,
+            },
+            "created_at": self.created_at,
+            "updated_at": self.updated_at,
+            "version": self.version,
+        }
+
+    @classmethod
+    def from_meta(
+        cls,
+        meta: dict[str, Any],
+        lang: np.ndarray | None = None,
+        vis: np.ndarray | None = None,
+        scene_graph: SceneGraph | None = None,
+    ) -> Session:
+        """Inverse of `meta`, with the layers (zeros if absent); `scene_graph` skips re-validating it."""
+        grid = VoxelGrid.from_dict(meta["grid"])
+        limits = fusion.LayerLimits(**meta["limits"])
+        return cls(
+            id=meta["id"],
+            robot_id=meta["robot_id"],
+            scene_graph=scene_graph
+            if scene_graph is not None
+            else SceneGraph.model_validate(meta["scene_graph"]),
+            grid=grid,
+            target_label=meta["target_label"],
+            sensor_model=SensorModel(**meta["sensor_model"]),
+            label_map={int(k): str(v) for k, v in meta["label_map"]},
+            created_at=meta["created_at"],
+            updated_at=meta["updated_at"],
+            belief=BeliefState(grid, limits, lang, vis, meta["version"]),
+        )
+
+    def copy(self) -> Session:
+        """A copy that shares the (immutable) scene graph and grid but not the layers."""
+        return Session(
+            self.id,
+            self.robot_id,
+            self.scene_graph,
+            self.grid,
+            self.target_label,
+            self.sensor_model,
+            dict(self.label_map),
+            self.created_at,
+            self.updated_at,
+            self.belief.copy(),
+        )
+
+
+def new_session(
+    robot_id: str,
+    scene_graph: SceneGraph,
+    target_label: str,
+    *,
+    label_map: dict[int, str] | None = None,
+    sensor_model: SensorModel | None = None,
+    voxel_size: float = DEFAULT_VOXEL_SIZE_M,
+    margin: float = DEFAULT_MARGIN_M,
+    max_voxels: int = DEFAULT_MAX_VOXELS,
+    limits: fusion.LayerLimits | None = None,
+    session_id: str | None = None,
+    now: float | None = None,
+) -> Session:
+    """A fresh session with a uniform belief on `VoxelGrid.around(scene_graph, voxel_size, margin)`."""
+    if not robot_id:
+        msg = "robot_id must not be empty"
+        raise InvalidInput(msg, "robot_id")
+    grid = VoxelGrid.around(scene_graph, voxel_size=voxel_size, margin=margin, max_voxels=max_voxels)
+    created = time.time() if now is None else now
+    if not math.isfinite(created):
+        msg = "creation time must be finite"
+        raise InvalidInput(msg, "now")
+    return Session(
+        id=session_id or uuid.uuid4().hex,
+        robot_id=robot_id,
+        scene_graph=scene_graph,
+        grid=grid,
+        target_label=target_label,
+        sensor_model=sensor_model or SensorModel(),
+        label_map=dict(label_map or {}),
+        created_at=created,
+        updated_at=created,
+        belief=BeliefState(grid, limits),
+    )

@@ -1,0 +1,314 @@
+"""What the belief says, in a few numbers: MAP voxel, top voxels, moments, entropy and mass per place.
+
+With pi = softmax(lang + vis) over the N voxel centres c_i (fusion equation (2)):
+
+    MAP              i* = argmax_i pi_i
+    mean             mu = sum_i pi_i c_i
+    covariance       Sigma = sum_i pi_i (c_i - mu)(c_i - mu)^T
+    entropy          H = -sum_i pi_i log pi_i                             (nats)
+    information gain IG = log N - H = KL(pi || uniform)                   (nats; 0 for the uniform prior)
+    place mass       m(P) = sum_{i: c_i in P} pi_i
+
+An object's place is its (yawed) box grown by `on_margin` above its top surface, so that a target resting
+on it ("on the table") or inside it ("in the fridge") counts towards it; a region's place is its box. An
+object smaller than a voxel, whose box holds no voxel centre, gets the voxel containing its centre.
+Places overlap (a cup's place lies inside the table's), so masses need not sum to one.
+
+Speed: one pass builds exp(s - max s) in float32; the mean and covariance come from one (R, nz) x (nz, 3)
+product giving each (x, y) column's mass and first two z moments; the top-k search only looks inside the
+blocks whose maximum can make the top k; place index ranges are computed once per (grid, scene graph) and
+cached. Sums over the grid are finished in float64.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from app.belief.grid import VoxelGrid
+from app.scene_graph.model import SceneGraph
+
+#: Height above an object's top surface that still counts as "on" it (metres): most things people leave
+#: on furniture (bags, cups, laptops, books) are under 30 cm tall.
+ON_MARGIN_M = 0.3
+#: Voxels per block in the top-k search; 1024 float32 values make one cheap SIMD row maximum.
+_TOPK_BLOCK = 1024
+#: Place indices kept for (grid, scene graph, margin) triples; one per live session is plenty.
+_PLACE_CACHE_SIZE = 64
+
+
+@dataclass(frozen=True)
+class VoxelMass:
+    """One voxel of the posterior: flat index, centre (m) and probability."""
+
+    index: int
+    center: tuple[float, float, float]
+    probability: float
+
+
+@dataclass(frozen=True)
+class PlaceMass:
+    """Posterior mass inside one scene-graph object's place or region."""
+
+    kind: Literal["object", "region"]
+    id: str
+    label: str
+    mass: float
+
+    def describe(self) -> str:
+        if self.kind == "object":
+            return f"{self.mass:.2f} on {self.label} {self.id}"
+        return f"{self.mass:.2f} in {self.label or self.id}"
+
+
+@dataclass(frozen=True)
+class PosteriorSummary:
+    """The posterior's MAP voxel, top voxels, moments, entropy and mass per place (sorted, largest first)."""
+
+    n_voxels: int
+    map_voxel: VoxelMass
+    top_voxels: tuple[VoxelMass, ...]
+    mean: tuple[float, float, float]
+    covariance: tuple[tuple[float, float, float], ...]
+    entropy_nats: float
+    information_gain_nats: float
+    objects: tuple[PlaceMass, ...] = ()
+    regions: tuple[PlaceMass, ...] = ()
+
+    def describe(self, n: int = 3) -> str:
+        """E.g. "0.62 on table 7, 0.30 on kitchen counter 2, 0.03 on chair 5"."""
+        return ", ".join(place.describe() for place in self.objects[:n])
+
+    def to_dict(self) -> dict[str, Any]:
+        def voxel(v: VoxelMass) -> dict[str, Any]:
+            return {"index": v.index, "center": list(v.center), "probability": v.probability}
+
+        def place(m: PlaceMass) -> dict[str, Any]:
+            return {"kind": m.kind, "id": m.id, "label": m.label, "mass": m.mass}
+
+        return {
+            "n_voxels": self.n_voxels,
+            "map_voxel": voxel(self.map_voxel),
+            "top_voxels": [voxel(v) for v in self.top_voxels],
+            "mean": list(self.mean),
+            "covariance": [list(row) for row in self.covariance],
+            "entropy_nats": self.entropy_nats,
+            "information_gain_nats": self.information_gain_nats,
+            "objects": [place(m) for m in self.objects],
+            "regions": [place(m) for m in self.regions],
+        }
+
+
+@dataclass(frozen=True)
+class _Place:
+    """A place as voxel index ranges, with a mask over that sub-box when the place is a yawed box."""
+
+    kind: Literal["object", "region"]
+    id: str
+    label: str
+    slices: tuple[slice, slice, slice]
+    mask: np.ndarray | None = None  # (bx, by, bz) bool, True where the voxel centre lies in the place
+
+
+@dataclass(frozen=True)
+class PlaceIndex:
+    """Every object's and region's voxels on one grid (build once, reuse for every summary)."""
+
+    objects: tuple[_Place, ...] = field(default=())
+    regions: tuple[_Place, ...] = field(default=())
+
+
+def object_place_box(center: np.ndarray, size: np.ndarray, on_margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Centre and half sizes (object frame) of an object's place: its box with `on_margin` added on top."""
+    half = 0.5 * np.asarray(size, dtype=np.float64)
+    center = np.asarray(center, dtype=np.float64) + np.array([0.0, 0.0, 0.5 * on_margin])
+    return center, half + np.array([0.0, 0.0, 0.5 * on_margin])
+
+
+def build_place_index(grid: VoxelGrid, scene_graph: SceneGraph, on_margin: float = ON_MARGIN_M) -> PlaceIndex:
+    """Voxel sets of every object's place (box + `on_margin` on top, yaw respected) and every region's box."""
+    objects = []
+    for obj in scene_graph.objects:
+        center, half = object_place_box(np.asarray(obj.center), np.asarray(obj.size), on_margin)
+        cos, sin = math.cos(obj.yaw), math.sin(obj.yaw)
+        # Bounding box of the yawed place in the map frame.
+        aabb_half = np.array(
+            [abs(cos) * half[0] + abs(sin) * half[1], abs(sin) * half[0] + abs(cos) * half[1], half[2]]
+        )
+        slices = grid.box_slices(center - aabb_half, center + aabb_half)
+        mask = None
+        if abs(math.sin(2.0 * obj.yaw)) > 1e-9:  # not a multiple of 90 degrees: the box is not its own AABB
+            xs, ys = (grid.axis_centers(a)[s] - center[a] for a, s in ((0, slices[0]), (1, slices[1])))
+            local_x = (
+                cos * xs[:, None] + sin * ys[None, :]
+            )  # (bx, by): rotate map offsets into the object frame
+            local_y = -sin * xs[:, None] + cos * ys[None, :]
+            inside_xy = (np.abs(local_x) <= half[0]) & (np.abs(local_y) <= half[1])
+            nz = slices[2].stop - slices[2].start
+            mask = np.broadcast_to(inside_xy[:, :, None], (*inside_xy.shape, nz))
+        if _place_size(slices, mask) == 0:
+            flat, inside = grid.locate(np.asarray(obj.center)[None, :])
+            if inside[0]:
+                i, j, k = grid.flat_to_ijk(flat)[0]
+                slices, mask = (slice(i, i + 1), slice(j, j + 1), slice(k, k + 1)), None
+        objects.append(_Place("object", obj.id, obj.label, slices, mask))
+    regions = []
+    for reg in scene_graph.regions:
+        half = 0.5 * np.asarray(reg.size)
+        slices = grid.box_slices(np.asarray(reg.center) - half, np.asarray(reg.center) + half)
+        regions.append(_Place("region", reg.id, reg.name, slices))
+    return PlaceIndex(objects=tuple(objects), regions=tuple(regions))
+
+
+def _place_size(slices: tuple[slice, slice, slice], mask: np.ndarray | None) -> int:
+    if mask is not None:
+        return int(mask.sum())
+    return math.prod(max(0, s.stop - s.start) for s in slices)
+
+
+_place_cache: OrderedDict[tuple[VoxelGrid, str, float], PlaceIndex] = OrderedDict()
+_place_cache_lock = threading.Lock()
+
+
+def scene_graph_fingerprint(scene_graph: SceneGraph) -> str:
+    """A digest of the scene graph's content (two equal graphs share cached place indices)."""
+    return hashlib.blake2b(scene_graph.model_dump_json().encode(), digest_size=16).hexdigest()
+
+
+def cached_place_index(
+    grid: VoxelGrid, scene_graph: SceneGraph, on_margin: float = ON_MARGIN_M
+) -> PlaceIndex:
+    """`build_place_index`, memoised on (grid, scene-graph content, margin) for the last few graphs."""
+    key = (grid, scene_graph_fingerprint(scene_graph), float(on_margin))
+    with _place_cache_lock:
+        index = _place_cache.get(key)
+        if index is not None:
+            _place_cache.move_to_end(key)
+            return index
+    index = build_place_index(grid, scene_graph, on_margin)
+    with _place_cache_lock:
+        _place_cache[key] = index
+        while len(_place_cache) > _PLACE_CACHE_SIZE:
+            _place_cache.popitem(last=False)
+    return index
+
+
+def summarize(
+    grid: VoxelGrid,
+    lang: np.ndarray,
+    vis: np.ndarray,
+    scene_graph: SceneGraph | None = None,
+    *,
+    top_k: int = 5,
+    max_places: int = 10,
+    on_margin: float = ON_MARGIN_M,
+) -> PosteriorSummary:
+    """Summarise softmax(lang + vis) on `grid` (see the module docstring); places need `scene_graph`."""
+    n = grid.n_voxels
+    nx, ny, nz = grid.shape
+    s = np.add(lang, vis, dtype=np.float32)  # (N,) log-weights
+    top_idx = _top_k_indices(s, min(max(top_k, 1), n))  # sorted, best first
+    peak = s[top_idx[0]]
+    s -= peak
+    p = np.exp(s)  # (N,) unnormalised posterior, max 1
+    # Entropy: H = log Z - sum_i p_i s_i / Z with s already shifted by its max.
+    p_dot_s = _blocked_dot(p, s)
+
+    # Column moments about the MAP voxel (small numbers keep float32 products accurate):
+    # cols[i, j] = (sum_k p_ijk, sum_k p_ijk dz_k, sum_k p_ijk dz_k^2).
+    anchor = grid.centers(top_idx[:1])[0]
+    xs, ys, zs = (grid.axis_centers(a) - anchor[a] for a in range(3))
+    z_powers = np.stack([np.ones(nz), zs, zs * zs], axis=1).astype(np.float32)  # (nz, 3)
+    cols = (p.reshape(nx * ny, nz) @ z_powers).astype(np.float64).reshape(nx, ny, 3)
+    z_total = cols[..., 0].sum()
+    px, py = cols[..., 0].sum(axis=1), cols[..., 0].sum(axis=0)  # (nx,), (ny,)
+    e_x, e_y, e_z = xs @ px / z_total, ys @ py / z_total, cols[..., 1].sum() / z_total
+    e_xx, e_yy, e_zz = (xs * xs) @ px / z_total, (ys * ys) @ py / z_total, cols[..., 2].sum() / z_total
+    e_xy = xs @ cols[..., 0] @ ys / z_total
+    e_xz = xs @ cols[..., 1].sum(axis=1) / z_total
+    e_yz = ys @ cols[..., 1].sum(axis=0) / z_total
+    second = np.array([[e_xx, e_xy, e_xz], [e_xy, e_yy, e_yz], [e_xz, e_yz, e_zz]])
+    first = np.array([e_x, e_y, e_z])
+    covariance = second - np.outer(first, first)
+    mean = first + anchor
+
+    entropy = math.log(z_total) - p_dot_s / z_total
+    centers = grid.centers(top_idx)
+    top = tuple(
+        VoxelMass(int(i), (float(c[0]), float(c[1]), float(c[2])), float(p[i] / z_total))
+        for i, c in zip(top_idx, centers, strict=True)
+    )
+    objects: tuple[PlaceMass, ...] = ()
+    regions: tuple[PlaceMass, ...] = ()
+    if scene_graph is not None:
+        index = cached_place_index(grid, scene_graph, on_margin)
+        p3 = p.reshape(nx, ny, nz)
+        objects = _place_masses(index.objects, p3, z_total, max_places)
+        regions = _place_masses(index.regions, p3, z_total, max_places)
+    return PosteriorSummary(
+        n_voxels=n,
+        map_voxel=top[0],
+        top_voxels=top,
+        mean=(float(mean[0]), float(mean[1]), float(mean[2])),
+        covariance=tuple((float(r[0]), float(r[1]), float(r[2])) for r in covariance),
+        entropy_nats=float(entropy),
+        information_gain_nats=float(math.log(n) - entropy),
+        objects=objects,
+        regions=regions,
+    )
+
+
+def _place_masses(
+    places: tuple[_Place, ...], p3: np.ndarray, total: float, keep: int
+) -> tuple[PlaceMass, ...]:
+    masses = []
+    for place in places:
+        block = p3[place.slices]
+        weight = float(
+            block.sum(dtype=np.float64) if place.mask is None else block[place.mask].sum(dtype=np.float64)
+        )
+        masses.append(PlaceMass(place.kind, place.id, place.label, float(weight / total)))
+    masses.sort(key=lambda m: (-m.mass, m.id))
+    return tuple(masses[:keep])
+
+
+def _blocked_dot(a: np.ndarray, b: np.ndarray) -> float:
+    """sum_i a_i b_i for float32 vectors: float32 dot products of 1024-blocks, summed in float64."""
+    main = len(a) - len(a) % _TOPK_BLOCK
+    blocks = np.vecdot(a[:main].reshape(-1, _TOPK_BLOCK), b[:main].reshape(-1, _TOPK_BLOCK))
+    return float(blocks.sum(dtype=np.float64) + np.dot(a[main:].astype(np.float64), b[main:]))
+
+
+def _top_k_indices(s: np.ndarray, k: int) -> np.ndarray:
+    """Flat indices of the k largest values of s, largest first (ties at the k-th value broken arbitrarily).
+
+    Split s into blocks and let t be the k-th largest block maximum. Every voxel outside the blocks whose
+    maximum exceeds t, and outside k blocks whose maximum equals t, is <= t, while those blocks hold at
+    least k voxels >= t; so the top k of those few blocks are the top k of s.
+    """
+    n = len(s)
+    main = n - n % _TOPK_BLOCK
+    block_max = s[:main].reshape(-1, _TOPK_BLOCK).max(axis=1)
+    starts = np.arange(0, main, _TOPK_BLOCK)
+    if main < n:
+        block_max = np.append(block_max, s[main:].max())
+        starts = np.append(starts, main)
+    if k < len(block_max):
+        threshold = np.partition(block_max, len(block_max) - k)[len(block_max) - k]
+        chosen = np.concatenate(
+            [np.flatnonzero(block_max > threshold), np.flatnonzero(block_max == threshold)[:k]]
+        )
+        candidates = np.concatenate([np.arange(starts[b], min(starts[b] + _TOPK_BLOCK, n)) for b in chosen])
+    else:
+        candidates = np.arange(n)
+    values = s[candidates]
+    if k < len(candidates):
+        best = np.argpartition(values, len(values) - k)[len(values) - k :]
+        candidates, values = candidates[best], values[best]
+    return candidates[np.lexsort((candidates, -values))]
