@@ -60,13 +60,19 @@ def test_on_needs_the_bottom_at_the_anchor_top_and_the_footprint_centre_inside()
     assert not rel.is_on(box([0, 0, 0.85], [1.2, 1.2, 0.2]), TABLE)  # a bigger footprint is not supported
 
 
-def test_on_internal_support_accepts_a_seat_below_the_backrest():
+def test_on_internal_supports_accept_a_seat_below_the_backrest_and_shelf_boards():
     couch = box([0, 0, 0.45], [2.0, 1.0, 0.9])
+    reach = rel.internal_support_reach("couch")
     pillow = box([0.3, 0.1, 0.6], [0.4, 0.4, 0.3])  # bottom at 0.45, far below the couch's top
-    assert rel.is_on(pillow, couch, internal_support=True)
-    assert not rel.is_on(pillow, couch, internal_support=False)
+    assert rel.is_on(pillow, couch, reach)
+    assert not rel.is_on(pillow, couch)  # as a plain top surface the couch would not carry it
     bag_on_floor = box([0.3, 0.1, 0.2], [0.4, 0.4, 0.4])
-    assert not rel.is_on(bag_on_floor, couch, internal_support=True)
+    assert not rel.is_on(bag_on_floor, couch, reach)
+    chair = box([0, 0, 0.45], [0.6, 0.6, 0.9])
+    keyboard_on_desk_above_it = box([0.1, 0, 0.76], [0.45, 0.15, 0.04])  # bottom at 0.82 of the chair
+    assert not rel.is_on(keyboard_on_desk_above_it, chair, rel.internal_support_reach("office chair"))
+    bookshelf = box([0, 0, 1.0], [1.0, 0.4, 2.0])
+    assert rel.is_on(box([0, 0, 1.75], [0.3, 0.2, 0.3]), bookshelf, rel.internal_support_reach("bookshelf"))
 
 
 def test_in_needs_the_target_enclosed_and_smaller():
@@ -77,6 +83,7 @@ def test_in_needs_the_target_enclosed_and_smaller():
     assert rel.anchor_allowed(Relation.IN, "kitchen cabinet")
     assert rel.anchor_allowed(Relation.IN, "Trash Can")
     assert not rel.anchor_allowed(Relation.IN, "table")
+    assert rel.anchor_allowed(Relation.IN, "drawer") and not rel.anchor_allowed(Relation.ABOVE, "drawer")
 
 
 def test_above_needs_a_gap_overlap_and_bounded_height():
@@ -192,6 +199,7 @@ def test_templates_cover_every_relation_and_agree_in_number():
         assert all(any(p in t for p in RELATION_PHRASES[relation]) for t in texts)
     assert is_plural("books") and is_plural("kitchen cabinets") and not is_plural("glass")
     assert indefinite("apple") == "an apple" and indefinite("books") == "books"
+    assert indefinite("toilet paper") == "some toilet paper"
     books = {render_utterance(Relation.ON, "books", ("desk",), rng) for _ in range(80)}
     assert not any("books is" in t for t in books)
     with pytest.raises(ValueError, match="takes 2"):

@@ -107,7 +107,7 @@ def split_camel_case(object_type: str) -> str:
 
 
 def thor_placement_relation(receptacle_type: str) -> Relation:
-    """ "in" for receptacles that enclose (Fridge, Drawer, SinkBasin, ...), "on" for those that support."""
+    """IN for receptacles that enclose (Fridge, Drawer, SinkBasin, ...), ON for those that support."""
     return THOR_RECEPTACLE_RELATION.get(receptacle_type, Relation.ON)
 
 

@@ -19,6 +19,8 @@ Label policy (which objects may serve as anchors), decided here once:
 * doors, windows and other openings may anchor near, above, below, between, closest and farthest
   ("the chair closest to the door", "the radiator below the window"), but nothing rests on or in them;
 * "in" needs a container class (cabinet, drawer, fridge, box, bin, sink, ...);
+* parts of furniture (drawers, knobs, handles) anchor only "in" and "near": an object on a dresser is above
+  its drawers, but nobody says so, and "between the drawer and the drawer" names no place;
 * generic labels ("object", "structure") are never anchors: they cannot be named in an utterance;
 * an anchor never shares the target's label ("the chair near the chair" is not how people speak), except that
   the two anchors of "between" may share a label with each other.
@@ -41,8 +43,11 @@ ON_SINK_TOLERANCE = 0.25
 # on: the target's footprint centre may overhang the anchor's footprint by this much.
 ON_XY_MARGIN = 0.05
 # on, internal supports (seats, beds, shelves): the supported bottom is at least this high above the anchor's
-# base, which keeps things standing on the floor next to or under the anchor out.
+# base, which keeps things standing on the floor next to or under the anchor out ...
 INTERNAL_SUPPORT_MIN_HEIGHT = 0.15
+# ... and at most this fraction of a seat's height: seats lie below backrests and headboards, while a
+# keyboard at 0.8 of a chair's height is on the desk the chair is tucked under (shelves reach their top).
+SEAT_SURFACE_MAX_FRACTION = 0.7
 # in: how far the target's box may poke out of the container's box at the top or bottom.
 IN_Z_TOLERANCE = 0.05
 # above / hanging below: vertical gap range between the two boxes ("not touching", "within a max height").
@@ -85,6 +90,7 @@ OPENINGS = label_set(
 GENERIC = frozenset(
     {"object", "objects", "structure", "otherstructure", "otherprop", "otherfurniture", "unknown"}
 )
+PARTS = label_set("drawer, drawers, stove knob, knob, knobs, handle, handles")
 CONTAINERS = label_set(
     "cabinet, cabinets, kitchen cabinet, kitchen cabinets, file cabinet, bathroom cabinet, drawer, "
     "drawers, dresser, nightstand, night stand, refrigerator, fridge, mini fridge, freezer, "
@@ -94,10 +100,10 @@ CONTAINERS = label_set(
     "bathtub basin, tub, closet, wardrobe, wardrobe closet, safe, crate, bowl, pot, pan, cup, mug, "
     "kettle, coffee machine, bag, suitcase"
 )
-# Boxes whose support surface may lie anywhere inside them (seats under backrests, shelves in a frame).
-INTERNAL_SUPPORTS = label_set(
-    "chair, office chair, armchair, arm chair, sofa chair, couch, sofa, bed, bench, shelf, shelves, "
-    "bookshelf, bookshelves, bookcase, shelving unit, cart, rack, stand, tv stand"
+# Boxes with support surfaces inside them: seats under backrests and headboards, boards of shelves.
+SEATS = label_set("chair, office chair, armchair, arm chair, sofa chair, couch, sofa, bed, bench")
+SHELVES = label_set(
+    "shelf, shelves, bookshelf, bookshelves, bookcase, shelving unit, cart, rack, stand, tv stand"
 )
 # Furniture with free space underneath: "the box under the table".
 CLEARANCE_BELOW = label_set(
@@ -170,8 +176,14 @@ def is_container(label: str) -> bool:
     return _in_class(label, CONTAINERS)
 
 
-def has_internal_support(label: str) -> bool:
-    return _in_class(label, INTERNAL_SUPPORTS)
+def internal_support_reach(label: str) -> float:
+    """Up to which fraction of its height an anchor may carry things inside its box: 0 for a plain top
+    surface, SEAT_SURFACE_MAX_FRACTION for seats, 1 for shelves."""
+    if _in_class(label, SHELVES):
+        return 1.0
+    if _in_class(label, SEATS):
+        return SEAT_SURFACE_MAX_FRACTION
+    return 0.0
 
 
 def has_clearance_below(label: str) -> bool:
@@ -186,6 +198,8 @@ def anchor_allowed(relation: Relation, label: str) -> bool:
         return relation is Relation.NEAR
     if _in_class(label, OPENINGS):
         return relation not in (Relation.ON, Relation.IN)
+    if _in_class(label, PARTS) and relation not in (Relation.IN, Relation.NEAR):
+        return False
     if relation is Relation.IN:
         return is_container(label)
     return True
@@ -218,26 +232,34 @@ def surface_distance(a: Box, b: Box) -> np.ndarray:
     return np.linalg.norm(gap, axis=-1)
 
 
-def is_on(target: Box, anchor: Box, internal_support: bool | np.ndarray = False) -> np.ndarray:
+def is_on(target: Box, anchor: Box, internal_reach: float | np.ndarray = 0.0) -> np.ndarray:
     """The anchor supports the target.
 
-    Let b = target bottom, t_a = anchor top, z_a = anchor bottom, c = target footprint centre. Then
+    Let b = target bottom, t_a = anchor top, z_a = anchor bottom, h_a = t_a - z_a, c = target footprint
+    centre. On a plain top surface (`internal_reach` = 0):
 
         on  <=>  c in footprint(anchor) grown by ON_XY_MARGIN
              and |footprint(anchor)| > |footprint(target)|
-             and lower <= b <= t_a + ON_GAP_TOLERANCE
+             and max(t_a - ON_SINK_TOLERANCE, z_a + h_a / 2) <= b <= t_a + ON_GAP_TOLERANCE
              and target top > t_a          (it sits on the surface, not inside the anchor's box)
 
-    with lower = max(t_a - ON_SINK_TOLERANCE, anchor mid-height) for a plain top surface. For anchors with an
-    internal support (a seat under a backrest, the boards of a shelf) the surface can be at any height:
-    lower = z_a + INTERNAL_SUPPORT_MIN_HEIGHT and the top condition is dropped.
+    An anchor with support surfaces inside its box (`internal_reach` = r > 0: a seat under a backrest, the
+    boards of a shelf) replaces the height conditions by
+
+        z_a + INTERNAL_SUPPORT_MIN_HEIGHT <= b <= z_a + r h_a + ON_GAP_TOLERANCE.
     """
     bottom = target.lo[..., 2]
+    base_a = anchor.lo[..., 2]
     top_a = anchor.hi[..., 2]
-    plain_lower = np.maximum(top_a - ON_SINK_TOLERANCE, anchor.center[..., 2])
-    internal = np.asarray(internal_support, dtype=bool)
-    lower = np.where(internal, anchor.lo[..., 2] + INTERNAL_SUPPORT_MIN_HEIGHT, plain_lower)
-    height_ok = (bottom >= lower) & (bottom <= top_a + ON_GAP_TOLERANCE)
+    reach = np.asarray(internal_reach, dtype=float)
+    internal = reach > 0
+    lower = np.where(
+        internal,
+        base_a + INTERNAL_SUPPORT_MIN_HEIGHT,
+        np.maximum(top_a - ON_SINK_TOLERANCE, anchor.center[..., 2]),
+    )
+    upper = np.where(internal, base_a + reach * (top_a - base_a), top_a) + ON_GAP_TOLERANCE
+    height_ok = (bottom >= lower) & (bottom <= upper)
     pokes_out = internal | (target.hi[..., 2] > top_a)
     bigger = np.prod(anchor.size[..., :2], axis=-1) > np.prod(target.size[..., :2], axis=-1)
     inside_xy = footprint_contains(anchor, target.center[..., :2], ON_XY_MARGIN)
@@ -387,9 +409,9 @@ def true_groundings(
     def allowed(relation: Relation) -> np.ndarray:
         return other_class & np.array([anchor_allowed(relation, lab) for lab in labels])
 
-    internal = np.array([has_internal_support(lab) for lab in labels])
+    reach = np.array([internal_support_reach(lab) for lab in labels])
     clearance = np.array([has_clearance_below(lab) for lab in labels])
-    on = is_on(tbox, boxes, internal) & allowed(Relation.ON)
+    on = is_on(tbox, boxes, reach) & allowed(Relation.ON)
     inside = is_in(tbox, boxes) & allowed(Relation.IN) & ~on
     if placements is not None:
         known = np.array([i in placements for i in ids])

@@ -84,6 +84,8 @@ LABEL_SYNONYMS: dict[str, tuple[str, ...]] = {
     "mug": ("coffee mug",),
 }
 SYNONYM_PROBABILITY = 0.3
+# Nouns that take "some" rather than "a" ("there is some clothing on the bed").
+MASS_NOUNS = frozenset({"clothing", "paper", "foil", "bread", "lettuce", "laundry", "furniture", "food"})
 
 # {be}: is/are agreeing with the target; {pronoun_be}: it's/they're; {a_target}: "a mug", "an apple", "books".
 _LOCATIVE = (
@@ -134,9 +136,11 @@ def is_plural(phrase: str) -> bool:
 
 
 def indefinite(phrase: str) -> str:
-    """The phrase with its indefinite article: "a mug", "an apple", and plurals bare ("books")."""
+    """The phrase with its indefinite article: "a mug", "an apple", "some paper", plurals bare ("books")."""
     if is_plural(phrase):
         return phrase
+    if phrase.strip().rsplit(" ", 1)[-1].lower() in MASS_NOUNS:
+        return f"some {phrase}"
     article = "an" if phrase[:1].lower() in "aeiou" else "a"
     return f"{article} {phrase}"
 
