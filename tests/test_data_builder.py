@@ -157,6 +157,11 @@ def test_label_policy_of_anchors():
     assert all("c2" not in g.anchor_ids for g in found)  # never the target's own class
     assert (Relation.CLOSEST, ("d",)) in anchors  # the chair closest to the door
     assert not any(g.relation is Relation.CLOSEST for g in true_groundings(chair, room[:3]))  # no sibling
+    assert (
+        rel.same_kind("book", "Books")
+        and rel.same_kind("box", "boxes")
+        and not rel.same_kind("cup", "cupboard")
+    )
 
 
 def test_vectorised_predicates_match_pair_by_pair_calls():

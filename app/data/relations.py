@@ -22,8 +22,8 @@ Label policy (which objects may serve as anchors), decided here once:
 * parts of furniture (drawers, knobs, handles) anchor only "in" and "near": an object on a dresser is above
   its drawers, but nobody says so, and "between the drawer and the drawer" names no place;
 * generic labels ("object", "structure") are never anchors: they cannot be named in an utterance;
-* an anchor never shares the target's label ("the chair near the chair" is not how people speak), except that
-  the two anchors of "between" may share a label with each other.
+* an anchor is never of the target's kind ("the chair near the chair", "the book under the books" are not
+  how people speak), except that the two anchors of "between" may share a label with each other.
 """
 
 from __future__ import annotations
@@ -159,6 +159,12 @@ class Grounding:
 
 
 # --- label policy -----------------------------------------------------------------------------------------
+
+
+def same_kind(a: str, b: str) -> bool:
+    """Whether two labels name the same kind of thing, up to case and a plural ending ("book", "books")."""
+    x, y = a.strip().lower(), b.strip().lower()
+    return x == y or x in (y + "s", y + "es") or y in (x + "s", x + "es")
 
 
 def _in_class(label: str, names: frozenset[str]) -> bool:
@@ -404,7 +410,7 @@ def true_groundings(
     ids = [o.id for o in others]
     labels = [o.label for o in others]
     label = target.label.lower()
-    other_class = np.array([lab.lower() != label for lab in labels])
+    other_class = np.array([not same_kind(lab, label) for lab in labels])
 
     def allowed(relation: Relation) -> np.ndarray:
         return other_class & np.array([anchor_allowed(relation, lab) for lab in labels])
