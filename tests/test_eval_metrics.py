@@ -1,0 +1,129 @@
+"""Metric functions against hand-computed values and slow, obviously-correct references."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2, multivariate_normal
+
+from app.evaluation.metrics import (
+    anees,
+    euclidean_errors,
+    gaussian_nll,
+    gaussian_summary,
+    hdr_coverage,
+    hdr_thresholds,
+    mixture_nll,
+    nees,
+    rmse,
+)
+from app.grounding.mixture import Gaussian, GaussianMixture
+
+CORRELATED = np.array([[0.5, 0.1, 0.0], [0.1, 0.3, -0.05], [0.0, -0.05, 0.2]])
+
+
+def test_rmse_and_errors_by_hand():
+    means = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    targets = np.array([[3.0, 4.0, 0.0], [1.0, 1.0, 2.0]])
+    np.testing.assert_allclose(euclidean_errors(means, targets), [5.0, 1.0])
+    assert rmse(means, targets) == pytest.approx(math.sqrt((25.0 + 1.0) / 2.0))
+
+
+def test_nees_of_a_known_case():
+    # Sigma = diag(1, 4, 9), y - mu = (1, 2, 3): each axis contributes one standard deviation squared.
+    value = nees(np.zeros(3), np.diag([1.0, 4.0, 9.0]), np.array([1.0, 2.0, 3.0]))
+    np.testing.assert_allclose(value, [3.0])
+
+
+def test_nees_and_nll_match_the_explicit_formulas():
+    rng = np.random.default_rng(0)
+    means = rng.normal(size=(5, 3))
+    covs = np.stack([CORRELATED * (1 + k) for k in range(5)])
+    targets = rng.normal(size=(5, 3))
+    expected_nees = [
+        (y - m) @ np.linalg.inv(c) @ (y - m) for m, c, y in zip(means, covs, targets, strict=True)
+    ]
+    expected_nll = [
+        -multivariate_normal(m, c).logpdf(y) for m, c, y in zip(means, covs, targets, strict=True)
+    ]
+    np.testing.assert_allclose(nees(means, covs, targets), expected_nees, rtol=1e-10)
+    np.testing.assert_allclose(gaussian_nll(means, covs, targets), expected_nll, rtol=1e-10)
+
+
+def test_anees_of_samples_from_the_predicted_gaussian_is_three():
+    rng = np.random.default_rng(1)
+    mean = np.array([1.0, -2.0, 0.5])
+    targets = rng.multivariate_normal(mean, CORRELATED, size=20_000)
+    n = len(targets)
+    value = anees(np.tile(mean, (n, 1)), np.tile(CORRELATED, (n, 1, 1)), targets)
+    assert value == pytest.approx(3.0, abs=0.1)  # chi^2(3) mean; its std error here is sqrt(6 / n) ~ 0.02
+    # An overconfident predictor (covariance 4x too small) reads 4x too high.
+    assert anees(np.tile(mean, (n, 1)), np.tile(CORRELATED / 4, (n, 1, 1)), targets) == pytest.approx(
+        12.0, abs=0.4
+    )
+
+
+def test_mismatched_lengths_raise():
+    with pytest.raises(ValueError, match="number of cases"):
+        nees(np.zeros((2, 3)), np.tile(np.eye(3), (3, 1, 1)), np.zeros((2, 3)))
+
+
+def _mixture() -> GaussianMixture:
+    return GaussianMixture.from_components(
+        [0.6, 0.4],
+        [
+            Gaussian(np.array([0.0, 0.0, 0.0]), CORRELATED),
+            Gaussian(np.array([2.0, 1.0, 0.5]), 0.5 * np.eye(3)),
+        ],
+    )
+
+
+def test_mixture_nll_matches_the_sum_of_component_densities():
+    target = np.array([1.0, 0.5, 0.2])
+    density = 0.6 * multivariate_normal(np.zeros(3), CORRELATED).pdf(target) + 0.4 * multivariate_normal(
+        [2.0, 1.0, 0.5], 0.5 * np.eye(3)
+    ).pdf(target)
+    assert mixture_nll(_mixture(), target) == pytest.approx(-math.log(density), rel=1e-10)
+
+
+def test_hdr_coverage_of_samples_from_the_mixture_is_the_nominal_mass():
+    rng = np.random.default_rng(2)
+    mixture = _mixture()
+    targets = mixture.sample(4000, rng)
+    covered = hdr_coverage(mixture, targets, rng, masses=(0.5, 0.9, 0.95), n_samples=40_000)
+    assert covered.shape == (4000, 3)
+    # Binomial std error at n = 4000 is <= 0.008; allow ~4 of them.
+    np.testing.assert_allclose(covered.mean(axis=0), [0.5, 0.9, 0.95], atol=0.03)
+
+
+def test_hdr_of_a_single_gaussian_is_the_chi_square_ellipsoid():
+    """For one Gaussian the HDR of mass m is {NEES <= chi2_3.ppf(m)}; compare away from the edge."""
+    rng = np.random.default_rng(3)
+    gaussian = Gaussian(np.array([0.5, 0.0, 1.0]), CORRELATED)
+    mixture = GaussianMixture.from_components([1.0], [gaussian])
+    targets = rng.multivariate_normal(gaussian.mean, CORRELATED, size=500)
+    per_target_nees = nees(np.tile(gaussian.mean, (500, 1)), np.tile(CORRELATED, (500, 1, 1)), targets)
+    masses = (0.5, 0.9)
+    covered = hdr_coverage(mixture, targets, rng, masses=masses, n_samples=100_000)
+    for k, m in enumerate(masses):
+        edge = chi2.ppf(m, df=3)
+        clear = np.abs(per_target_nees - edge) > 0.15 * edge  # Monte Carlo thresholds wobble near the edge
+        np.testing.assert_array_equal(covered[clear, k], per_target_nees[clear] <= edge)
+
+
+def test_hdr_thresholds_decrease_with_mass():
+    thresholds = hdr_thresholds(_mixture(), (0.5, 0.9, 0.95), np.random.default_rng(4), n_samples=10_000)
+    assert thresholds[0] > thresholds[1] > thresholds[2]
+
+
+def test_gaussian_summary_collects_the_metrics():
+    means = np.zeros((2, 3))
+    covs = np.tile(np.eye(3), (2, 1, 1))
+    targets = np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    summary = gaussian_summary(means, covs, targets)
+    assert summary["n"] == 2
+    assert summary["rmse"] == pytest.approx(math.sqrt(2.5))
+    assert summary["anees"] == pytest.approx(2.5)
+    assert summary["nll_mean"] == pytest.approx(0.5 * (2.5 + 3 * math.log(2 * math.pi)))

