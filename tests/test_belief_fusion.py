@@ -106,17 +106,19 @@ def test_language_log_likelihood_matches_the_mixture_logpdf_at_each_centre(block
         assert got[flat] == pytest.approx(expected, rel=1e-12, abs=1e-10)
 
 
-def test_language_ignores_zero_weight_components() -> None:
-    g1, g2 = Gaussian(np.zeros(3), np.eye(3)), Gaussian(np.ones(3), 0.1 * np.eye(3))
-    with_zero = GaussianMixture(
+def test_language_with_one_live_component_matches_the_logpdf() -> None:
+    """A zero-weight component is dropped, which leaves the single-component path (no log-sum-exp)."""
+    g1, g2 = (
+        Gaussian(np.array([0.5, 0.3, 0.9]), np.diag([0.3, 0.2, 0.4])),
+        Gaussian(np.ones(3), 0.1 * np.eye(3)),
+    )
+    mixture = GaussianMixture(
         np.array([1.0, 0.0]), np.stack([g1.mean, g2.mean]), np.stack([g1.covariance, g2.covariance])
     )
-    alone = GaussianMixture.from_components([1.0], [g1])
-    np.testing.assert_allclose(
-        fusion.language_log_likelihood(GRID, with_zero),
-        fusion.language_log_likelihood(GRID, alone),
-        rtol=1e-12,
-    )
+    got = fusion.language_log_likelihood(GRID, mixture)
+    for flat, centre in loop_centers(GRID):
+        expected = float(g1.logpdf(centre[None, :])[0]) + math.log(GRID.voxel_volume)
+        assert got[flat] == pytest.approx(expected, rel=1e-12, abs=1e-10)
 
 
 def test_utterances_add_up_and_the_posterior_is_their_softmax() -> None:

@@ -110,7 +110,7 @@ def language_log_likelihood(
     Equal to `mixture.logpdf(grid.centers()) + log V`, computed slab by slab along x without building the
     (N, 3) centre array: with Sigma_h = L_h L_h^T and A_h = L_h^-1 (lower triangular), z = A_h (c - mu_h)
     has z_0 depending on x only, z_1 on (x, y) and only z_2 on all three, so the Mahalanobis term costs
-    three full-size operations per component.
+    three full-size operations per component; the log-sum-exp over components is skipped for K = 1.
     """
     nx, ny, nz = grid.shape
     xs, ys, zs = (grid.axis_centers(a) for a in range(3))
@@ -124,27 +124,36 @@ def language_log_likelihood(
         - 1.5 * _LOG_2PI
         + math.log(grid.voxel_volume)
     )  # (K,): log w_h - 1/2 log|Sigma_h| - 3/2 log 2pi + log V
+    # With B_h = A_h / sqrt(2), the "energy" e_h = |B_h (c - mu_h)|^2 - log_norm_h is -(log-term of h).
+    scaled = inv_chol / math.sqrt(2.0)
     out = np.empty(grid.n_voxels)
     slab = max(1, block_voxels // (ny * nz))
     for start in range(0, nx, slab):
         stop = min(nx, start + slab)
-        terms = np.empty((len(weights), stop - start, ny, nz))  # (K, bx, ny, nz)
-        for h, (a, mu) in enumerate(zip(inv_chol, means, strict=True)):
+        energy = np.empty((len(weights), stop - start, ny, nz))  # (K, bx, ny, nz)
+        for h, (b, mu) in enumerate(zip(scaled, means, strict=True)):
             dx = (xs[start:stop] - mu[0])[:, None, None]  # (bx, 1, 1)
             dy = (ys - mu[1])[None, :, None]  # (1, ny, 1)
             dz = (zs - mu[2])[None, None, :]  # (1, 1, nz)
-            z0 = a[0, 0] * dx
-            z1 = a[1, 0] * dx + a[1, 1] * dy  # (bx, ny, 1)
-            z2 = (a[2, 0] * dx + a[2, 1] * dy) + a[2, 2] * dz  # (bx, ny, nz)
-            t = terms[h]
-            np.multiply(z2, z2, out=t)
-            t += z0 * z0 + z1 * z1
-            t *= -0.5
-            t += log_norm[h]
-        peak = terms.max(axis=0)  # (bx, ny, nz)
-        np.subtract(terms, peak, out=terms)
-        np.exp(terms, out=terms)
-        out[start * ny * nz : stop * ny * nz] = (peak + np.log(terms.sum(axis=0))).ravel()
+            z0 = b[0, 0] * dx
+            z1 = b[1, 0] * dx + b[1, 1] * dy  # (bx, ny, 1)
+            e = energy[h]
+            np.add(b[2, 0] * dx + b[2, 1] * dy, b[2, 2] * dz, out=e)  # z2, (bx, ny, nz)
+            np.square(e, out=e)
+            e += z0 * z0 + z1 * z1 - log_norm[h]
+        block = out[start * ny * nz : stop * ny * nz].reshape(stop - start, ny, nz)
+        if len(weights) == 1:
+            np.negative(energy[0], out=block)
+            continue
+        # log sum_h exp(-e_h) = -e_min + log sum_h exp(e_min - e_h)
+        lowest = energy.min(axis=0)  # (bx, ny, nz)
+        np.subtract(lowest, energy, out=energy)
+        # Terms below e^-50 of the largest change nothing in float64, and exp is ~10x slower where it
+        # underflows (arguments below about -745), which far-away voxels reach easily.
+        np.maximum(energy, -50.0, out=energy)
+        np.exp(energy, out=energy)
+        np.log(energy.sum(axis=0), out=block)
+        block -= lowest
     return out
 
 

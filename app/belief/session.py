@@ -462,14 +462,19 @@ def new_session(
     margin: float = DEFAULT_MARGIN_M,
     max_voxels: int = DEFAULT_MAX_VOXELS,
     limits: fusion.LayerLimits | None = None,
+    grid: VoxelGrid | None = None,
     session_id: str | None = None,
     now: float | None = None,
 ) -> Session:
-    """A fresh session with a uniform belief on `VoxelGrid.around(scene_graph, voxel_size, margin)`."""
+    """A fresh session with a uniform belief on `grid`, by default `VoxelGrid.around(scene_graph, ...)`."""
     if not robot_id:
         msg = "robot_id must not be empty"
         raise InvalidInput(msg, "robot_id")
-    grid = VoxelGrid.around(scene_graph, voxel_size=voxel_size, margin=margin, max_voxels=max_voxels)
+    if grid is None:
+        grid = VoxelGrid.around(scene_graph, voxel_size=voxel_size, margin=margin, max_voxels=max_voxels)
+    elif grid.n_voxels > max_voxels:
+        msg = f"the grid has {grid.n_voxels} voxels, more than the limit {max_voxels}"
+        raise LimitExceeded(msg, "max_voxels")
     created = time.time() if now is None else now
     if not math.isfinite(created):
         msg = "creation time must be finite"

@@ -14,10 +14,11 @@ on it ("on the table") or inside it ("in the fridge") counts towards it; a regio
 object smaller than a voxel, whose box holds no voxel centre, gets the voxel containing its centre.
 Places overlap (a cup's place lies inside the table's), so masses need not sum to one.
 
-Speed: one pass builds exp(s - max s) in float32; the mean and covariance come from one (R, nz) x (nz, 3)
-product giving each (x, y) column's mass and first two z moments; the top-k search only looks inside the
-blocks whose maximum can make the top k; place index ranges are computed once per (grid, scene graph) and
-cached. Sums over the grid are finished in float64.
+Speed: two passes over the grid in cache-sized chunks. The first finds block maxima, and the top-k
+search then looks only inside the blocks whose maximum can make the top k. The second writes
+exp(s - max s) in float32 and accumulates the entropy term and, per (x, y) column, the mass and the
+first two z moments (one small matrix product per chunk), from which the mean and covariance follow.
+Place index ranges are computed once per (grid, scene graph) and cached. Grid sums finish in float64.
 """
 
 from __future__ import annotations
@@ -39,6 +40,10 @@ from app.scene_graph.model import SceneGraph
 ON_MARGIN_M = 0.3
 #: Voxels per block in the top-k search; 1024 float32 values make one cheap SIMD row maximum.
 _TOPK_BLOCK = 1024
+#: Voxels per chunk of the two passes over the grid (256 kB of float32: stays in L2).
+_CHUNK_VOXELS = 1 << 16
+#: Log-weights are floored at max - 80 before exp (see `summarize`).
+_EXP_FLOOR = -80.0
 #: Place indices kept for (grid, scene graph, margin) triples; one per live session is plenty.
 _PLACE_CACHE_SIZE = 64
 
@@ -212,20 +217,52 @@ def summarize(
     """Summarise softmax(lang + vis) on `grid` (see the module docstring); places need `scene_graph`."""
     n = grid.n_voxels
     nx, ny, nz = grid.shape
-    s = np.add(lang, vis, dtype=np.float32)  # (N,) log-weights
-    top_idx = _top_k_indices(s, min(max(top_k, 1), n))  # sorted, best first
-    peak = s[top_idx[0]]
-    s -= peak
-    p = np.exp(s)  # (N,) unnormalised posterior, max 1
-    # Entropy: H = log Z - sum_i p_i s_i / Z with s already shifted by its max.
-    p_dot_s = _blocked_dot(p, s)
+    # Chunks of whole (x, y) columns, small enough to stay in cache; s = lang + vis is recomputed per chunk
+    # rather than stored, which saves a full-size array and two passes over it.
+    rows = max(1, _CHUNK_VOXELS // nz)
+    chunks = [(r * nz, min(r + rows, nx * ny) * nz) for r in range(0, nx * ny, rows)]
+    scratch = np.empty(min(n, rows * nz), dtype=np.float32)
 
-    # Column moments about the MAP voxel (small numbers keep float32 products accurate):
+    def log_weights(start: int, stop: int) -> np.ndarray:
+        out = scratch[: stop - start]
+        np.add(lang[start:stop], vis[start:stop], out=out)
+        return out
+
+    # Pass 1: block maxima, then the top k inside the few blocks that can hold them.
+    block_starts, block_max = [], []
+    for start, stop in chunks:
+        s = log_weights(start, stop)
+        full = len(s) - len(s) % _TOPK_BLOCK
+        block_starts.append(np.arange(start, start + len(s), _TOPK_BLOCK))
+        block_max.append(s[:full].reshape(-1, _TOPK_BLOCK).max(axis=1))
+        if full < len(s):
+            block_max.append(s[full:].max(keepdims=True))
+    starts = np.concatenate(block_starts)
+    stops = np.append(starts[1:], n)
+    top_idx = _top_k_indices(np.concatenate(block_max), starts, stops, lang, vis, min(max(top_k, 1), n))
+    peak = np.add(lang[top_idx[0]], vis[top_idx[0]], dtype=np.float32)
+
+    # Pass 2: p = exp(s - peak) (max 1), sum_i p_i (s_i - peak) for the entropy, and column moments about
+    # the MAP voxel (small offsets keep float32 products accurate):
     # cols[i, j] = (sum_k p_ijk, sum_k p_ijk dz_k, sum_k p_ijk dz_k^2).
     anchor = grid.centers(top_idx[:1])[0]
     xs, ys, zs = (grid.axis_centers(a) - anchor[a] for a in range(3))
     z_powers = np.stack([np.ones(nz), zs, zs * zs], axis=1).astype(np.float32)  # (nz, 3)
-    cols = (p.reshape(nx * ny, nz) @ z_powers).astype(np.float64).reshape(nx, ny, 3)
+    p = np.empty(n, dtype=np.float32)  # (N,) unnormalised posterior
+    cols32 = np.empty((nx * ny, 3), dtype=np.float32)
+    p_dot_s = 0.0
+    for start, stop in chunks:
+        s = log_weights(start, stop)
+        s -= peak
+        # exp underflows (and slows down ~10x) below about -87 in float32; e^-80 relative to the MAP voxel
+        # is far below anything the summary reports, so nothing visible changes.
+        np.maximum(s, _EXP_FLOOR, out=s)
+        chunk = p[start:stop]
+        np.exp(s, out=chunk)
+        p_dot_s += _blocked_dot(chunk, s)
+        # Per-chunk products stay small enough that BLAS does not spawn threads (a loss on a busy machine).
+        np.matmul(chunk.reshape(-1, nz), z_powers, out=cols32[start // nz : stop // nz])
+    cols = cols32.astype(np.float64).reshape(nx, ny, 3)
     z_total = cols[..., 0].sum()
     px, py = cols[..., 0].sum(axis=1), cols[..., 0].sum(axis=0)  # (nx,), (ny,)
     e_x, e_y, e_z = xs @ px / z_total, ys @ py / z_total, cols[..., 1].sum() / z_total
@@ -285,29 +322,29 @@ def _blocked_dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(blocks.sum(dtype=np.float64) + np.dot(a[main:].astype(np.float64), b[main:]))
 
 
-def _top_k_indices(s: np.ndarray, k: int) -> np.ndarray:
-    """Flat indices of the k largest values of s, largest first (ties at the k-th value broken arbitrarily).
+def _top_k_indices(
+    block_max: np.ndarray,
+    starts: np.ndarray,
+    stops: np.ndarray,
+    lang: np.ndarray,
+    vis: np.ndarray,
+    k: int,
+) -> np.ndarray:
+    """Flat indices of the k largest lang + vis, largest first (ties at the k-th value broken arbitrarily).
 
-    Split s into blocks and let t be the k-th largest block maximum. Every voxel outside the blocks whose
-    maximum exceeds t, and outside k blocks whose maximum equals t, is <= t, while those blocks hold at
-    least k voxels >= t; so the top k of those few blocks are the top k of s.
+    Blocks [starts[b], stops[b]) have maxima block_max[b]; let t be the k-th largest. Every voxel outside
+    the blocks whose maximum exceeds t, and outside k blocks whose maximum equals t, is <= t, while those
+    blocks hold at least k voxels >= t; so the top k of those few blocks are the top k overall.
     """
-    n = len(s)
-    main = n - n % _TOPK_BLOCK
-    block_max = s[:main].reshape(-1, _TOPK_BLOCK).max(axis=1)
-    starts = np.arange(0, main, _TOPK_BLOCK)
-    if main < n:
-        block_max = np.append(block_max, s[main:].max())
-        starts = np.append(starts, main)
     if k < len(block_max):
         threshold = np.partition(block_max, len(block_max) - k)[len(block_max) - k]
         chosen = np.concatenate(
             [np.flatnonzero(block_max > threshold), np.flatnonzero(block_max == threshold)[:k]]
         )
-        candidates = np.concatenate([np.arange(starts[b], min(starts[b] + _TOPK_BLOCK, n)) for b in chosen])
     else:
-        candidates = np.arange(n)
-    values = s[candidates]
+        chosen = np.arange(len(block_max))
+    candidates = np.concatenate([np.arange(starts[b], stops[b]) for b in chosen])
+    values = np.add(lang[candidates], vis[candidates], dtype=np.float32)
     if k < len(candidates):
         best = np.argpartition(values, len(values) - k)[len(values) - k :]
         candidates, values = candidates[best], values[best]
