@@ -1,0 +1,26 @@
+"""Durable homes for VL-Map sessions: one `SessionStore` interface, an in-memory store with an optional
+write-ahead log (`MemorySessionStore`) and a Redis store shared by replicas (`RedisSessionStore`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from app.errors import InvalidInput
+from app.stores.base import DEFAULT_TTL_S, SessionStore
+from app.stores.memory import MemorySessionStore
+
+__all__ = ["DEFAULT_TTL_S", "MemorySessionStore", "SessionStore", "open_store"]
+
+
+def open_store(
+    url: str | None = None, *, data_dir: Path | str | None = None, ttl_s: float | None = DEFAULT_TTL_S
+) -> SessionStore:
+    """The store a setting names: None or "memory" -> `MemorySessionStore(data_dir)`, redis:// -> Redis."""
+    if url is None or url == "memory":
+        return MemorySessionStore(data_dir, ttl_s=ttl_s)
+    if url.startswith(("redis://", "rediss://", "unix://")):
+        from app.stores.redis_store import RedisSessionStore
+
+        return RedisSessionStore(url, ttl_s=ttl_s)
+    msg = f"unknown session store {url!r}: use 'memory' or a redis:// URL"
+    raise InvalidInput(msg, "session_store")

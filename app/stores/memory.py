@@ -1,0 +1,559 @@
+"""Sessions in process memory, optionally made durable by a write-ahead log and per-session snapshots.
+
+Durability (when `data_dir` is given). Every update is first appended to an append-only log as the
+*operation* (the utterance's mixture parameters; the observation batch's voxel indices and increments;
+the new scene graph), each record framed as [u32 length][u32 crc32][msgpack payload] and stamped with a
+log sequence number (LSN); the file is fsync'd before the update is applied in memory and acknowledged.
+So a `kill -9` at any moment loses nothing that was acknowledged: a crash mid-append leaves a torn last
+record, which the next start recognises (short header, short payload or bad crc), ignores and cuts off.
+
+Compaction. After `snapshot_every` records or `snapshot_bytes` of log, the log rolls over to a new
+segment; every session changed since its last snapshot is written to `sessions/<id>.snap` (meta + layers +
+the LSN it includes) through a temporary file, fsync and rename; then the old segments are deleted. On
+start, snapshots are loaded and the segments replayed in order, skipping records a session's snapshot
+already includes (LSN <= its snapshot's), which makes a crash anywhere inside compaction harmless.
+
+Layout of `data_dir`: `LOCK` (flock: one process per directory), `wal-<seq>.log`, `sessions/<id>.snap`.
+
+Locking: a lock per session serialises its updates (log append + apply happen under it, so the log order
+is the apply order); a registry lock guards the id -> session map; the log has its own lock. Lock order:
+session, then registry, then log.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import logging
+import os
+import struct
+import threading
+import time
+import zlib
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import msgpack
+import numpy as np
+
+from app.belief import fusion
+from app.belief.session import (
+    DEFAULT_MAX_BATCH_VOXELS,
+    BeliefState,
+    IncrementBatch,
+    Session,
+    SessionInfo,
+    UpdateResult,
+    language_log_likelihood,
+)
+from app.belief.summary import PosteriorSummary, summarize
+from app.errors import InvalidInput, NotFound, StoreUnavailable
+from app.grounding.mixture import GaussianMixture
+from app.scene_graph.model import SceneGraph
+from app.stores.base import (
+    DEFAULT_TTL_S,
+    check_session_id,
+    compact_indices,
+    float64_mixture,
+    pack_array,
+    pack_mixture,
+    unpack_array,
+    unpack_mixture,
+)
+
+log = logging.getLogger(__name__)
+
+#: Records between compactions.
+DEFAULT_SNAPSHOT_EVERY = 1000
+#: Log bytes between compactions (observation batches are large: 100k voxels make an 800 kB record).
+DEFAULT_SNAPSHOT_BYTES = 256 * 2**20
+
+_HEADER = struct.Struct("<II")  # payload length, crc32 of the payload
+_SNAPSHOT_DIR = "sessions"
+
+
+class _Entry:
+    """A live session with its lock and the LSNs of its last logged update and of its last snapshot."""
+
+    __slots__ = ("deleted", "lock", "lsn", "session", "snap_lsn")
+
+    def __init__(self, session: Session, lsn: int = 0, snap_lsn: int = 0) -> None:
+        self.session = session
+        self.lock = threading.Lock()
+        self.lsn = lsn
+        self.snap_lsn = snap_lsn
+        self.deleted = False
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _segment_seq(path: Path) -> int:
+    return int(path.stem.removeprefix("wal-"))
+
+
+class _WriteAheadLog:
+    """Numbered append-only segments of framed msgpack records; `append` returns once it is on disk."""
+
+    def __init__(self, directory: Path, next_seq: int, next_lsn: int) -> None:
+        self.directory = directory
+        self.lock = threading.Lock()
+        self.next_lsn = next_lsn
+        self.records = 0  # since the last rotation
+        self.bytes = 0
+        self._broken: str | None = None
+        self._seq = next_seq
+        self._file = self._open_segment()
+
+    def _open_segment(self) -> BinaryIO:
+        handle = (self.directory / f"wal-{self._seq:08d}.log").open("ab")
+        _fsync_dir(self.directory)
+        return handle
+
+    def append(self, record: dict[str, Any]) -> int:
+        with self.lock:
+            if self._broken:
+                msg = f"the session log cannot be written: {self._broken}"
+                raise StoreUnavailable(msg)
+            lsn = self.next_lsn
+            payload = msgpack.packb({**record, "lsn": lsn}, use_bin_type=True)
+            frame = _HEADER.pack(len(payload), zlib.crc32(payload)) + payload
+            start = self._file.tell()
+            try:
+                self._file.write(frame)
+                self._file.flush()
+                os.fsync(self._file.fileno())
+            except OSError as exc:
+                self._undo(start, exc)
+                msg = f"the session log cannot be written: {exc}"
+                raise StoreUnavailable(msg) from exc
+            self.next_lsn += 1
+            self.records += 1
+            self.bytes += len(frame)
+            return lsn
+
+    def _undo(self, start: int, exc: OSError) -> None:
+        """Cut a half-written record off, or refuse all further appends if that fails too."""
+        try:
+            self._file.truncate(start)
+            self._file.seek(start)
+            os.fsync(self._file.fileno())
+        except OSError:
+            self._broken = str(exc)
+
+    def rotate(self) -> list[Path]:
+        """Start a new segment; returns the older segments (whose records all have smaller LSNs)."""
+        with self.lock:
+            self._seq += 1
+            try:
+                new_file = self._open_segment()
+            except OSError:
+                self._seq -= 1  # keep appending to the current segment
+                raise
+            self._file.close()
+            self._file = new_file
+            self.records = self.bytes = 0
+            return sorted(
+                (p for p in self.directory.glob("wal-*.log") if _segment_seq(p) < self._seq), key=_segment_seq
+            )
+
+    def close(self) -> None:
+        with self.lock:
+            self._file.close()
+
+
+def _read_segment(path: Path, tolerate_torn_tail: bool) -> Iterator[dict[str, Any]]:
+    """Records of one segment; a torn last record is cut off (if tolerated) or raises."""
+    data = path.read_bytes()
+    offset = 0
+    while offset < len(data):
+        torn = offset + _HEADER.size > len(data)
+        if not torn:
+            length, crc = _HEADER.unpack_from(data, offset)
+            payload = data[offset + _HEADER.size : offset + _HEADER.size + length]
+            torn = len(payload) < length or zlib.crc32(payload) != crc
+        if torn:
+            if not tolerate_torn_tail:
+                msg = f"session log {path} is corrupt at byte {offset} (not its last segment)"
+                raise StoreUnavailable(msg)
+            log.warning("session log %s: ignoring a torn record at byte %d (crash mid-write)", path, offset)
+            with path.open("r+b") as fh:
+                fh.truncate(offset)
+                os.fsync(fh.fileno())
+            return
+        yield msgpack.unpackb(payload, raw=False)
+        offset += _HEADER.size + length
+
+
+class MemorySessionStore:
+    """Thread-safe in-memory sessions, durable across crashes when `data_dir` is given (module docstring)."""
+
+    def __init__(
+        self,
+        data_dir: Path | str | None = None,
+        *,
+        ttl_s: float | None = DEFAULT_TTL_S,
+        snapshot_every: int = DEFAULT_SNAPSHOT_EVERY,
+        snapshot_bytes: int = DEFAULT_SNAPSHOT_BYTES,
+        max_batch_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.ttl_s = ttl_s
+        self.snapshot_every = snapshot_every
+        self.snapshot_bytes = snapshot_bytes
+        self.max_batch_voxels = max_batch_voxels
+        self._clock = clock
+        self._entries: dict[str, _Entry] = {}
+        self._registry_lock = threading.Lock()
+        self._compact_lock = threading.Lock()
+        self._closed = False
+        self._dir = Path(data_dir) if data_dir is not None else None
+        self._wal: _WriteAheadLog | None = None
+        self._lock_file: BinaryIO | None = None
+        if self._dir is not None:
+            try:
+                self._open_durable(self._dir)
+            except OSError as exc:
+                msg = f"cannot open the session data directory {self._dir}: {exc}"
+                raise StoreUnavailable(msg) from exc
+        self.purge_expired()
+
+    # -- durability -----------------------------------------------------------------------------------------
+
+    def _open_durable(self, directory: Path) -> None:
+        (directory / _SNAPSHOT_DIR).mkdir(parents=True, exist_ok=True)
+        self._lock_file = (directory / "LOCK").open("ab")
+        try:
+            fcntl.flock(self._lock_file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError as exc:
+            self._lock_file.close()
+            msg = f"the session data directory {directory} is in use by another store"
+            raise StoreUnavailable(msg) from exc
+        for tmp in (directory / _SNAPSHOT_DIR).glob("*.tmp"):
+            tmp.unlink()
+        last_lsn = 0
+        for path in (directory / _SNAPSHOT_DIR).glob("*.snap"):
+            snap = msgpack.unpackb(path.read_bytes(), raw=False)
+            session = Session.from_meta(snap["meta"], unpack_array(snap["lang"]), unpack_array(snap["vis"]))
+            self._entries[session.id] = _Entry(session, snap["lsn"], snap["lsn"])
+            last_lsn = max(last_lsn, snap["lsn"])
+        segments = sorted(directory.glob("wal-*.log"), key=_segment_seq)
+        replayed = 0
+        for number, path in enumerate(segments):
+            for record in _read_segment(path, tolerate_torn_tail=number == len(segments) - 1):
+                self._replay(record)
+                last_lsn = max(last_lsn, record["lsn"])
+                replayed += 1
+        next_seq = _segment_seq(segments[-1]) + 1 if segments else 1
+        self._wal = _WriteAheadLog(directory, next_seq, last_lsn + 1)
+        if not replayed:
+            for segment in segments:  # empty segments of earlier starts
+                segment.unlink()
+        else:
+            log.info(
+                "session store %s: %d sessions, %d log records replayed",
+                directory,
+                len(self._entries),
+                replayed,
+            )
+            self._compact()
+
+    def _replay(self, record: dict[str, Any]) -> None:
+        sid, lsn, op = record["sid"], record["lsn"], record["op"]
+        entry = self._entries.get(sid)
+        if op == "create":
+            if entry is not None and entry.lsn >= lsn:
+                return  # the snapshot already holds this incarnation
+            lang = unpack_array(record["lang"]) if "lang" in record else None
+            vis = unpack_array(record["vis"]) if "vis" in record else None
+            self._entries[sid] = _Entry(Session.from_meta(record["meta"], lang, vis), lsn)
+            return
+        if entry is None or entry.lsn >= lsn:
+            return  # deleted later, or already in the snapshot
+        if op == "delete":
+            del self._entries[sid]
+            return
+        session = entry.session
+        if op == "utterance":
+            session.belief.apply_utterance(unpack_mixture(record["mixture"]))
+        elif op == "increments":
+            idx = unpack_array(record["idx"]).astype(np.int64)
+            session.belief.apply_increments(IncrementBatch(idx, unpack_array(record["inc"])))
+        elif op == "scene_graph":
+            session.scene_graph = SceneGraph.model_validate(record["scene_graph"])
+            session.belief.version += 1
+        else:
+            msg = f"unknown session-log operation {op!r}"
+            raise StoreUnavailable(msg)
+        session.updated_at = record["t"]
+        entry.lsn = lsn
+
+    def _append(self, record: dict[str, Any]) -> int:
+        """Log a record (durably) and return its LSN; 0 without a data directory."""
+        return self._wal.append(record) if self._wal is not None else 0
+
+    def _maybe_compact(self) -> None:
+        wal = self._wal
+        if wal is not None and (wal.records >= self.snapshot_every or wal.bytes >= self.snapshot_bytes):
+            self._compact()
+
+    def _compact(self) -> None:
+        """Snapshot every session changed since its last snapshot, then drop the log segments before now."""
+        if self._wal is None or self._dir is None or not self._compact_lock.acquire(blocking=False):
+            return
+        try:
+            old_segments = self._wal.rotate()
+            with self._registry_lock:
+                entries = list(self._entries.values())
+            snap_dir = self._dir / _SNAPSHOT_DIR
+            written = []
+            for entry in entries:
+                with entry.lock:
+                    if entry.deleted or entry.lsn <= entry.snap_lsn:
+                        continue
+                    lsn, payload = entry.lsn, self._snapshot_bytes(entry)
+                path = snap_dir / f"{entry.session.id}.snap"
+                tmp = path.with_suffix(".tmp")
+                with tmp.open("wb") as fh:
+                    fh.write(payload)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                tmp.replace(path)
+                written.append((entry, lsn, path))
+            _fsync_dir(snap_dir)
+            for entry, lsn, path in written:
+                with entry.lock:
+                    if entry.deleted:  # deleted while we wrote: its delete removed nothing or an older file
+                        path.unlink(missing_ok=True)
+                    else:
+                        entry.snap_lsn = max(entry.snap_lsn, lsn)
+            _fsync_dir(snap_dir)
+            for segment in old_segments:
+                segment.unlink()
+            _fsync_dir(self._dir)
+        except OSError:
+            log.exception("session store compaction failed; the log keeps growing until the next attempt")
+        finally:
+            self._compact_lock.release()
+
+    @staticmethod
+    def _snapshot_bytes(entry: _Entry) -> bytes:
+        session = entry.session
+        snap = {
+            "lsn": entry.lsn,
+            "meta": session.meta(),
+            "lang": pack_array(session.belief.lang),
+            "vis": pack_array(session.belief.vis),
+        }
+        return msgpack.packb(snap, use_bin_type=True)
+
+    # -- sessions -------------------------------------------------------------------------------------------
+
+    def _expired(self, session: Session, now: float) -> bool:
+        return self.ttl_s is not None and now - session.updated_at > self.ttl_s
+
+    def _check_open(self) -> None:
+        if self._closed:
+            msg = "the session store is closed"
+            raise StoreUnavailable(msg)
+
+    def _entry(self, session_id: str) -> _Entry:
+        self._check_open()
+        with self._registry_lock:
+            entry = self._entries.get(session_id)
+        if entry is None:
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        if self._expired(entry.session, self._clock()):
+            self._remove(entry)
+            msg = f"no session {session_id!r} (expired)"
+            raise NotFound(msg)
+        return entry
+
+    @contextlib.contextmanager
+    def _locked(self, session_id: str) -> Iterator[_Entry]:
+        entry = self._entry(session_id)
+        with entry.lock:
+            if entry.deleted:
+                msg = f"no session {session_id!r}"
+                raise NotFound(msg)
+            yield entry
+
+    def _remove(self, entry: _Entry) -> bool:
+        """Log the deletion and forget the session; False if someone else removed it first."""
+        with entry.lock:
+            if entry.deleted:
+                return False
+            self._append({"op": "delete", "sid": entry.session.id, "t": self._clock()})
+            entry.deleted = True
+            if self._dir is not None:
+                (self._dir / _SNAPSHOT_DIR / f"{entry.session.id}.snap").unlink(missing_ok=True)
+            with self._registry_lock:
+                if self._entries.get(entry.session.id) is entry:
+                    del self._entries[entry.session.id]
+        return True
+
+    def create(self, session: Session) -> SessionInfo:
+        self._check_open()
+        check_session_id(session.id)
+        stored = session.copy()
+        now = self._clock()
+        stored.updated_at = now
+        while True:
+            with self._registry_lock:
+                existing = self._entries.get(stored.id)
+                if existing is None:
+                    record: dict[str, Any] = {
+                        "op": "create",
+                        "sid": stored.id,
+                        "t": now,
+                        "meta": stored.meta(),
+                    }
+                    for name, layer in (("lang", stored.belief.lang), ("vis", stored.belief.vis)):
+                        if np.any(layer):
+                            record[name] = pack_array(layer)
+                    # Logged under the registry lock: a compaction listing sessions after its log cut sees
+                    # every session whose creation precedes the cut.
+                    self._entries[stored.id] = _Entry(stored, self._append(record))
+                    break
+            if not self._expired(existing.session, now):
+                msg = f"a session with id {stored.id!r} exists"
+                raise InvalidInput(msg, "id")
+            self._remove(existing)
+        self._maybe_compact()
+        return stored.info()
+
+    def get(self, session_id: str) -> Session:
+        with self._locked(session_id) as entry:
+            return entry.session.copy()
+
+    def list(self, robot_id: str | None = None) -> list[SessionInfo]:
+        self._check_open()
+        self.purge_expired()
+        with self._registry_lock:
+            sessions = [e.session for e in self._entries.values()]
+        infos = [s.info() for s in sessions if robot_id is None or s.robot_id == robot_id]
+        return sorted(infos, key=lambda info: (info.created_at, info.id))
+
+    def delete(self, session_id: str) -> None:
+        if not self._remove(self._entry(session_id)):
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        self._maybe_compact()
+
+    def replace_scene_graph(self, session_id: str, scene_graph: SceneGraph) -> int:
+        with self._locked(session_id) as entry:
+            now = self._clock()
+            sg = scene_graph.model_dump(mode="json")
+            entry.lsn = self._append({"op": "scene_graph", "sid": session_id, "t": now, "scene_graph": sg})
+            entry.session.scene_graph = scene_graph
+            entry.session.belief.version += 1
+            entry.session.updated_at = now
+            version = entry.session.version
+        self._maybe_compact()
+        return version
+
+    def apply_utterance(self, session_id: str, mixture: GaussianMixture) -> UpdateResult:
+        mixture = float64_mixture(mixture)
+        with self._locked(session_id) as entry:
+            session = entry.session
+            # Validate and compute before logging, so that a logged operation always applies; this is the
+            # computation `BeliefState.apply_utterance` does on replay.
+            candidate = session.belief.lang.copy()
+            log_likelihood = language_log_likelihood(session.grid, mixture)
+            fusion.apply_language(candidate, log_likelihood, session.belief.limits.lang_span)
+            now = self._clock()
+            entry.lsn = self._append(
+                {"op": "utterance", "sid": session_id, "t": now, "mixture": pack_mixture(mixture)}
+            )
+            session.belief.lang = candidate
+            session.belief.version += 1
+            session.updated_at = now
+            result = UpdateResult(session_id, session.version, session.grid.n_voxels)
+        self._maybe_compact()
+        return result
+
+    def _apply_batch(self, entry: _Entry, batch: IncrementBatch) -> UpdateResult:
+        session = entry.session
+        now = self._clock()
+        if self._wal is not None:
+            idx = compact_indices(batch.flat_idx, session.grid.n_voxels)
+            record = {"op": "increments", "sid": session.id, "t": now, "idx": pack_array(idx)}
+            entry.lsn = self._append({**record, "inc": pack_array(batch.increments)})
+        session.belief.apply_increments(batch)
+        session.updated_at = now
+        return UpdateResult(session.id, session.version, len(batch.flat_idx), batch.n_outside)
+
+    def apply_observations(
+        self,
+        session_id: str,
+        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        tp: float | None = None,
+        fp: float | None = None,
+    ) -> UpdateResult:
+        with self._locked(session_id) as entry:
+            batch = entry.session.observation_batch(
+                labels, points=points, flat_idx=flat_idx, tp=tp, fp=fp, max_voxels=self.max_batch_voxels
+            )
+            result = self._apply_batch(entry, batch)
+        self._maybe_compact()
+        return result
+
+    def apply_detections(
+        self,
+        session_id: str,
+        p_target: np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        prior: float = 0.5,
+    ) -> UpdateResult:
+        with self._locked(session_id) as entry:
+            batch = entry.session.detection_batch(
+                p_target, points=points, flat_idx=flat_idx, prior=prior, max_voxels=self.max_batch_voxels
+            )
+            result = self._apply_batch(entry, batch)
+        self._maybe_compact()
+        return result
+
+    def read_layers(self, session_id: str) -> BeliefState:
+        with self._locked(session_id) as entry:
+            return entry.session.belief.copy()
+
+    def summary(self, session_id: str, **kwargs: Any) -> PosteriorSummary:
+        with self._locked(session_id) as entry:
+            s = entry.session
+            return summarize(s.grid, s.belief.lang, s.belief.vis, s.scene_graph, **kwargs)
+
+    def purge_expired(self) -> int:
+        if self.ttl_s is None:
+            return 0
+        now = self._clock()
+        with self._registry_lock:
+            expired = [e for e in self._entries.values() if self._expired(e.session, now)]
+        return sum(self._remove(entry) for entry in expired)
+
+    def close(self) -> None:
+        """Release the data directory; the log is already durable, so nothing needs flushing."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._wal is not None:
+            self._wal.close()
+        if self._lock_file is not None:
+            self._lock_file.close()
+
+    def __enter__(self) -> MemorySessionStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

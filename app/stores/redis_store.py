@@ -1,0 +1,458 @@
+"""Sessions in Redis, shared by every replica of the service.
+
+Keys of session S (the hash tag {S} keeps them in one cluster slot):
+
+    <prefix>:s:{S}:meta   hash: static (msgpack: robot, grid, target, label map, sensor model, limits,
+                          creation time), sg (scene graph JSON), version, updated_at
+    <prefix>:s:{S}:lang   hash: block number -> float32 bytes of `block_voxels` voxels (absent = zeros)
+    <prefix>:s:{S}:vis    hash: the same for the vision layer
+    <prefix>:s:{S}:lock   the update lock
+    <prefix>:sessions, <prefix>:robot:<R>   sorted sets of session ids scored by expiry time (ms)
+
+No lost updates across replicas: an update takes the session's lock (SET NX PX with a random token,
+released by a compare-and-delete script), then WATCHes the meta hash, reads what it needs, and writes the
+new blocks with version + 1 in one MULTI/EXEC. Every write touches the meta hash, so if a lock ever expired
+under a slow holder the other writer's EXEC fails and it retries from fresh data: the lock gives fairness
+and no busy retries, WATCH gives correctness. An observation batch reads and writes only the vision
+blocks its voxels fall in.
+
+Expiry: every write sets the same absolute expiry (PEXPIREAT now + ttl) on all of the session's keys and
+its sorted-set scores; Redis drops the keys, listings skip and prune the ids.
+
+Any Redis failure (connection refused or lost, timeout, out of memory) raises `StoreUnavailable`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+import time
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, ParamSpec, TypeVar
+
+import msgpack
+import numpy as np
+
+from app.belief import fusion
+from app.belief.grid import VoxelGrid
+from app.belief.session import (
+    DEFAULT_MAX_BATCH_VOXELS,
+    BeliefState,
+    IncrementBatch,
+    ObservationModel,
+    SensorModel,
+    Session,
+    SessionInfo,
+    UpdateResult,
+    language_log_likelihood,
+)
+from app.belief.summary import PosteriorSummary, summarize
+from app.errors import InvalidInput, NotFound, StoreUnavailable
+from app.grounding.mixture import GaussianMixture
+from app.scene_graph.model import SceneGraph
+from app.stores.base import DEFAULT_TTL_S, check_session_id, float64_mixture
+
+#: Voxels per stored block: 256 kB of float32, a few dozen blocks for a room.
+DEFAULT_BLOCK_VOXELS = 1 << 16
+#: How long an update may hold a session's lock before another replica may take it (seconds).
+DEFAULT_LOCK_TTL_S = 30.0
+#: How long an update waits for a session's lock before giving up with StoreUnavailable (seconds).
+DEFAULT_LOCK_WAIT_S = 10.0
+#: Transactions retried when a lock expired under a slow holder and the meta hash changed.
+_MAX_WATCH_RETRIES = 20
+
+_RELEASE_SCRIPT = """
+if redis.call('get', KEYS[1]) == ARGV[1] then
+    return redis.call('del', KEYS[1])
+end
+return 0
+"""
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def _redis_errors(method: Callable[P, R]) -> Callable[P, R]:
+    """Turn every Redis client error into StoreUnavailable (the API answers 503)."""
+
+    @functools.wraps(method)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        from redis.exceptions import RedisError
+
+        try:
+            return method(*args, **kwargs)
+        except RedisError as exc:
+            msg = f"the session store (Redis) is unavailable: {type(exc).__name__}: {exc}"
+            raise StoreUnavailable(msg) from exc
+
+    return wrapper
+
+
+def _static_meta(session: Session) -> dict[str, Any]:
+    meta = session.meta()
+    for key in ("scene_graph", "version", "updated_at"):
+        del meta[key]
+    return meta
+
+
+class RedisSessionStore:
+    """`SessionStore` on a Redis server (`url` as redis-py reads it, e.g. redis://127.0.0.1:6379/0)."""
+
+    def __init__(
+        self,
+        url: str = "redis://127.0.0.1:6379/0",
+        *,
+        ttl_s: float | None = DEFAULT_TTL_S,
+        prefix: str = "vlmap",
+        block_voxels: int = DEFAULT_BLOCK_VOXELS,
+        lock_ttl_s: float = DEFAULT_LOCK_TTL_S,
+        lock_wait_s: float = DEFAULT_LOCK_WAIT_S,
+        max_batch_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
+        socket_timeout_s: float = 5.0,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        import redis
+
+        if block_voxels < 1:
+            msg = f"block_voxels must be positive, got {block_voxels}"
+            raise InvalidInput(msg, "block_voxels")
+        self.ttl_s = ttl_s
+        self.prefix = prefix
+        self.block_voxels = block_voxels
+        self.lock_ttl_ms = int(lock_ttl_s * 1000)
+        self.lock_wait_s = lock_wait_s
+        self.max_batch_voxels = max_batch_voxels
+        self._clock = clock
+        # Typed Any: redis-py's annotations merge its sync and async return types.
+        self._client: Any = redis.Redis.from_url(
+            url, socket_timeout=socket_timeout_s, socket_connect_timeout=socket_timeout_s
+        )
+        self._release = self._client.register_script(_RELEASE_SCRIPT)
+
+    # -- keys and small helpers -----------------------------------------------------------------------------
+
+    def _key(self, session_id: str, part: str) -> str:
+        return f"{self.prefix}:s:{{{session_id}}}:{part}"
+
+    def _index_key(self, robot_id: str | None = None) -> str:
+        return f"{self.prefix}:sessions" if robot_id is None else f"{self.prefix}:robot:{robot_id}"
+
+    def _expiry_ms(self, now: float) -> float:
+        return math.inf if self.ttl_s is None else math.floor((now + self.ttl_s) * 1000)
+
+    def _touch(self, pipe: Any, session_id: str, robot_id: str, now: float) -> None:
+        """Queue the expiry of all the session's keys and index entries (inside MULTI)."""
+        expiry = self._expiry_ms(now)
+        if math.isfinite(expiry):
+            for part in ("meta", "lang", "vis"):
+                pipe.pexpireat(self._key(session_id, part), int(expiry))
+        pipe.zadd(self._index_key(), {session_id: expiry})
+        pipe.zadd(self._index_key(robot_id), {session_id: expiry})
+
+    def _n_blocks(self, n_voxels: int) -> int:
+        return -(-n_voxels // self.block_voxels)
+
+    def _blocks_of(self, layer: np.ndarray) -> dict[str, bytes]:
+        b = self.block_voxels
+        return {str(i): layer[i * b : (i + 1) * b].tobytes() for i in range(self._n_blocks(len(layer)))}
+
+    def _assemble(self, blocks: dict[bytes, bytes], n_voxels: int) -> np.ndarray:
+        layer = np.zeros(n_voxels, dtype=fusion.LAYER_DTYPE)
+        for name, data in blocks.items():
+            start = int(name) * self.block_voxels
+            layer[start : start + len(data) // 4] = np.frombuffer(data, dtype="<f4")
+        return layer
+
+    @contextlib.contextmanager
+    def _session_lock(self, session_id: str) -> Iterator[None]:
+        key, token = self._key(session_id, "lock"), uuid.uuid4().hex
+        deadline = time.monotonic() + self.lock_wait_s
+        pause = 0.001
+        while not self._client.set(key, token, nx=True, px=self.lock_ttl_ms):
+            if time.monotonic() > deadline:
+                msg = f"session {session_id!r} stayed locked for {self.lock_wait_s} s; try again"
+                raise StoreUnavailable(msg)
+            time.sleep(pause)
+            pause = min(2 * pause, 0.05)
+        try:
+            yield
+        finally:
+            self._release(keys=[key], args=[token])
+
+    def _update(self, session_id: str, change: Callable[[Any, dict[str, Any], int], Callable[[Any], R]]) -> R:
+        """Run one read-modify-write of a session under its lock and a WATCH on its meta hash.
+
+        `change(pipe, static_meta, new_version)` reads through `pipe` (immediate mode) and returns
+        `write(tx)`, which queues the writes inside MULTI and returns the result; the version bump,
+        `updated_at` and the expiry are queued here.
+        """
+        meta_key = self._key(session_id, "meta")
+        with self._session_lock(session_id):
+            from redis.exceptions import WatchError
+
+            for _ in range(_MAX_WATCH_RETRIES):
+                with self._client.pipeline() as pipe:
+                    try:
+                        pipe.watch(meta_key)
+                        static_raw, version = pipe.hmget(meta_key, ["static", "version"])
+                        if static_raw is None:
+                            msg = f"no session {session_id!r}"
+                            raise NotFound(msg)
+                        static = msgpack.unpackb(static_raw, raw=False)
+                        write = change(pipe, static, int(version) + 1)
+                        now = self._clock()
+                        pipe.multi()
+                        result = write(pipe)
+                        pipe.hset(meta_key, mapping={"version": int(version) + 1, "updated_at": repr(now)})
+                        self._touch(pipe, session_id, static["robot_id"], now)
+                        pipe.execute()
+                        return result
+                    except WatchError:
+                        continue
+        msg = f"session {session_id!r} kept changing during an update; try again"
+        raise StoreUnavailable(msg)
+
+    # -- SessionStore ---------------------------------------------------------------------------------------
+
+    @_redis_errors
+    def create(self, session: Session) -> SessionInfo:
+        check_session_id(session.id)
+        from redis.exceptions import WatchError
+
+        meta_key = self._key(session.id, "meta")
+        now = self._clock()
+        with self._client.pipeline() as pipe:
+            try:
+                pipe.watch(meta_key)
+                if pipe.exists(meta_key):
+                    msg = f"a session with id {session.id!r} exists"
+                    raise InvalidInput(msg, "id")
+                pipe.multi()
+                pipe.hset(
+                    meta_key,
+                    mapping={
+                        "static": msgpack.packb(_static_meta(session), use_bin_type=True),
+                        "sg": session.scene_graph.model_dump_json(),
+                        "version": session.version,
+                        "updated_at": repr(now),
+                    },
+                )
+                for part, layer in (("lang", session.belief.lang), ("vis", session.belief.vis)):
+                    if np.any(layer):
+                        pipe.hset(self._key(session.id, part), mapping=self._blocks_of(layer))
+                self._touch(pipe, session.id, session.robot_id, now)
+                pipe.execute()
+            except WatchError as exc:
+                msg = f"a session with id {session.id!r} exists"
+                raise InvalidInput(msg, "id") from exc
+        info = session.info()
+        return SessionInfo(
+            info.id, info.robot_id, info.target_label, info.n_voxels, info.created_at, now, info.version
+        )
+
+    def _read(self, session_id: str, parts: tuple[str, ...]) -> tuple[dict[bytes, bytes], ...]:
+        """HGETALL of the given hashes in one transaction (a consistent view); NotFound without meta."""
+        with self._client.pipeline(transaction=True) as pipe:
+            for part in parts:
+                pipe.hgetall(self._key(session_id, part))
+            results = pipe.execute()
+        if not results[0]:
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        return tuple(results)
+
+    def _session_from(self, meta: dict[bytes, bytes], lang: np.ndarray, vis: np.ndarray) -> Session:
+        static = msgpack.unpackb(meta[b"static"], raw=False)
+        full = {**static, "version": int(meta[b"version"]), "updated_at": float(meta[b"updated_at"])}
+        return Session.from_meta(full, lang, vis, scene_graph=SceneGraph.model_validate_json(meta[b"sg"]))
+
+    @_redis_errors
+    def get(self, session_id: str) -> Session:
+        meta, lang, vis = self._read(session_id, ("meta", "lang", "vis"))
+        n = int(np.prod(msgpack.unpackb(meta[b"static"], raw=False)["grid"]["shape"]))
+        return self._session_from(meta, self._assemble(lang, n), self._assemble(vis, n))
+
+    @_redis_errors
+    def list(self, robot_id: str | None = None) -> list[SessionInfo]:
+        index = self._index_key(robot_id)
+        now_ms = self._clock() * 1000
+        self._client.zremrangebyscore(index, "-inf", f"({now_ms}")
+        ids = [sid.decode() for sid in self._client.zrangebyscore(index, now_ms, "+inf")]
+        with self._client.pipeline(transaction=False) as pipe:
+            for sid in ids:
+                pipe.hmget(self._key(sid, "meta"), ["static", "version", "updated_at"])
+            rows = pipe.execute()
+        infos = []
+        for sid, (static_raw, version, updated_at) in zip(ids, rows, strict=True):
+            if static_raw is None:
+                continue  # deleted or expired since the index was read
+            static = msgpack.unpackb(static_raw, raw=False)
+            n = int(np.prod(static["grid"]["shape"]))
+            infos.append(
+                SessionInfo(
+                    sid,
+                    static["robot_id"],
+                    static["target_label"],
+                    n,
+                    static["created_at"],
+                    float(updated_at),
+                    int(version),
+                )
+            )
+        return sorted(infos, key=lambda info: (info.created_at, info.id))
+
+    @_redis_errors
+    def delete(self, session_id: str) -> None:
+        with self._session_lock(session_id):
+            static_raw = self._client.hget(self._key(session_id, "meta"), "static")
+            if static_raw is None:
+                msg = f"no session {session_id!r}"
+                raise NotFound(msg)
+            robot_id = msgpack.unpackb(static_raw, raw=False)["robot_id"]
+            with self._client.pipeline(transaction=True) as pipe:
+                pipe.delete(*(self._key(session_id, part) for part in ("meta", "lang", "vis")))
+                pipe.zrem(self._index_key(), session_id)
+                pipe.zrem(self._index_key(robot_id), session_id)
+                pipe.execute()
+
+    @_redis_errors
+    def replace_scene_graph(self, session_id: str, scene_graph: SceneGraph) -> int:
+        sg_json = scene_graph.model_dump_json()
+        meta_key = self._key(session_id, "meta")
+
+        def change(pipe: Any, static: dict[str, Any], version: int) -> Callable[[Any], int]:
+            def write(tx: Any) -> int:
+                tx.hset(meta_key, "sg", sg_json)
+                return version
+
+            return write
+
+        return self._update(session_id, change)
+
+    @_redis_errors
+    def apply_utterance(self, session_id: str, mixture: GaussianMixture) -> UpdateResult:
+        mixture = float64_mixture(mixture)
+        lang_key = self._key(session_id, "lang")
+
+        def change(pipe: Any, static: dict[str, Any], version: int) -> Callable[[Any], UpdateResult]:
+            grid = VoxelGrid.from_dict(static["grid"])
+            lang = self._assemble(pipe.hgetall(lang_key), grid.n_voxels)
+            span = fusion.LayerLimits(**static["limits"]).lang_span
+            fusion.apply_language(lang, language_log_likelihood(grid, mixture), span)
+
+            def write(tx: Any) -> UpdateResult:
+                tx.hset(lang_key, mapping=self._blocks_of(lang))
+                return UpdateResult(session_id, version, grid.n_voxels)
+
+            return write
+
+        return self._update(session_id, change)
+
+    def _observer(self, static: dict[str, Any]) -> ObservationModel:
+        return ObservationModel(
+            VoxelGrid.from_dict(static["grid"]),
+            static["target_label"],
+            {int(k): str(v) for k, v in static["label_map"]},
+            SensorModel(**static["sensor_model"]),
+        )
+
+    def _apply_batch(
+        self, session_id: str, make_batch: Callable[[ObservationModel], IncrementBatch]
+    ) -> UpdateResult:
+        vis_key = self._key(session_id, "vis")
+
+        def change(pipe: Any, static: dict[str, Any], version: int) -> Callable[[Any], UpdateResult]:
+            observer = self._observer(static)
+            limits = fusion.LayerLimits(**static["limits"])
+            batch = make_batch(observer)
+            n, b = observer.grid.n_voxels, self.block_voxels
+            touched = np.flatnonzero(np.bincount(batch.flat_idx // b, minlength=self._n_blocks(n)))  # (T,)
+            names = [str(i) for i in touched]
+            stored = pipe.hmget(vis_key, names) if names else []
+            local = np.zeros(len(touched) * b, dtype=fusion.LAYER_DTYPE)  # touched blocks side by side
+            for slot, data in enumerate(stored):
+                if data is not None:
+                    local[slot * b : slot * b + len(data) // 4] = np.frombuffer(data, dtype="<f4")
+            slot_of = np.zeros(self._n_blocks(n), dtype=np.int64)
+            slot_of[touched] = np.arange(len(touched))
+            local_idx = slot_of[batch.flat_idx // b] * b + batch.flat_idx % b
+            fusion.apply_increments(local, local_idx, batch.increments, limits.vis_min, limits.vis_max)
+
+            def write(tx: Any) -> UpdateResult:
+                if names:
+                    blocks = {}
+                    for slot, i in enumerate(touched):
+                        length = min(b, n - int(i) * b)
+                        blocks[names[slot]] = local[slot * b : slot * b + length].tobytes()
+                    tx.hset(vis_key, mapping=blocks)
+                return UpdateResult(session_id, version, len(batch.flat_idx), batch.n_outside)
+
+            return write
+
+        return self._update(session_id, change)
+
+    @_redis_errors
+    def apply_observations(
+        self,
+        session_id: str,
+        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        tp: float | None = None,
+        fp: float | None = None,
+    ) -> UpdateResult:
+        return self._apply_batch(
+            session_id,
+            lambda observer: observer.observation_batch(
+                labels, points=points, flat_idx=flat_idx, tp=tp, fp=fp, max_voxels=self.max_batch_voxels
+            ),
+        )
+
+    @_redis_errors
+    def apply_detections(
+        self,
+        session_id: str,
+        p_target: np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        prior: float = 0.5,
+    ) -> UpdateResult:
+        return self._apply_batch(
+            session_id,
+            lambda observer: observer.detection_batch(
+                p_target, points=points, flat_idx=flat_idx, prior=prior, max_voxels=self.max_batch_voxels
+            ),
+        )
+
+    @_redis_errors
+    def read_layers(self, session_id: str) -> BeliefState:
+        meta, lang, vis = self._read(session_id, ("meta", "lang", "vis"))
+        static = msgpack.unpackb(meta[b"static"], raw=False)
+        grid = VoxelGrid.from_dict(static["grid"])
+        limits = fusion.LayerLimits(**static["limits"])
+        n = grid.n_voxels
+        return BeliefState(
+            grid, limits, self._assemble(lang, n), self._assemble(vis, n), int(meta[b"version"])
+        )
+
+    @_redis_errors
+    def summary(self, session_id: str, **kwargs: Any) -> PosteriorSummary:
+        session = self.get(session_id)
+        return summarize(session.grid, session.belief.lang, session.belief.vis, session.scene_graph, **kwargs)
+
+    @_redis_errors
+    def purge_expired(self) -> int:
+        return int(self._client.zremrangebyscore(self._index_key(), "-inf", f"({self._clock() * 1000}"))
+
+    def close(self) -> None:
+        self._client.close()
+
+    def __enter__(self) -> RedisSessionStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,609 @@
+"""Session stores: the same behaviour from the memory store (plain and durable) and the Redis store.
+
+The reference for every update is a local `Session` that applies the same operations directly. The
+Redis tests start a private `redis-server` on a free loopback port and skip only when the binary is absent.
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from app.belief.fusion import LayerLimits
+from app.belief.session import SensorModel, Session, new_session
+from app.belief.summary import summarize
+from app.errors import InvalidInput, NotFound, StoreUnavailable
+from app.grounding.mixture import Gaussian, GaussianMixture
+from app.scene_graph.model import SceneGraph
+from app.stores import MemorySessionStore, SessionStore, open_store
+from app.stores.memory import _HEADER
+
+REPO = Path(__file__).resolve().parent.parent
+SCENE_DICT = {
+    "regions": [{"id": "r", "name": "living room", "center": [2.0, 1.0, 1.0], "size": [4.0, 2.0, 2.0]}],
+    "objects": [
+        {"id": "1", "label": "table", "center": [1.0, 1.0, 0.4], "size": [1.0, 0.8, 0.8], "region_id": "r"},
+        {"id": "2", "label": "sofa", "center": [3.0, 1.0, 0.4], "size": [1.6, 0.9, 0.8], "region_id": "r"},
+    ],
+}
+SCENE = SceneGraph.model_validate(SCENE_DICT)
+LABELS = {0: "floor", 1: "backpack", 2: "table"}
+
+
+UNCLAMPED = LayerLimits(vis_min=-1e4, vis_max=1e4, lang_span=1e4)
+
+
+def make_session(
+    session_id: str | None = None, robot_id: str = "robot-1", limits: LayerLimits | None = None
+) -> Session:
+    sid = session_id or uuid.uuid4().hex
+    return new_session(robot_id, SCENE, "backpack", label_map=LABELS, session_id=sid, limits=limits)
+
+
+def wide_mixture(rng: np.random.Generator) -> GaussianMixture:
+    """A broad two-component mixture over the test room."""
+    gaussians = [
+        Gaussian(rng.uniform([0.5, 0.5, 0.2], [3.5, 1.5, 1.2]), np.diag(rng.uniform(1.0, 3.0, 3)))
+        for _ in range(2)
+    ]
+    return GaussianMixture.from_components(rng.uniform(0.3, 1.0, 2), gaussians)
+
+
+Op = Callable[[Any], Any]  # applied to a store-like target: (store, session id) or a local Session
+
+
+def random_ops(seed: int, n: int, n_voxels: int) -> list[tuple[str, dict[str, Any]]]:
+    """Mixed updates: broad utterances, labels with a tp/fp override, detections; random repeated voxels."""
+    rng = np.random.default_rng(seed)
+    ops: list[tuple[str, dict[str, Any]]] = []
+    for _ in range(n):
+        kind = rng.choice(["utterance", "labels", "detections"], p=[0.2, 0.5, 0.3])
+        if kind == "utterance":
+            ops.append(("utterance", {"mixture": wide_mixture(rng)}))
+        elif kind == "labels":
+            m = int(rng.integers(1, 300))
+            ops.append(
+                (
+                    "labels",
+                    {
+                        "labels": rng.integers(0, 3, m),
+                        "flat_idx": rng.integers(0, n_voxels, m),
+                        "tp": 0.6,
+                        "fp": 0.4,
+                    },
+                )
+            )
+        else:
+            m = int(rng.integers(1, 300))
+            ops.append(
+                (
+                    "detections",
+                    {"p_target": rng.uniform(0.3, 0.7, m), "flat_idx": rng.integers(0, n_voxels, m)},
+                )
+            )
+    return ops
+
+
+def apply_to_store(store: SessionStore, session_id: str, op: tuple[str, dict[str, Any]]) -> int:
+    kind, args = op
+    if kind == "utterance":
+        return store.apply_utterance(session_id, args["mixture"]).version
+    if kind == "labels":
+        a = dict(args)
+        return store.apply_observations(session_id, a.pop("labels"), **a).version
+    a = dict(args)
+    return store.apply_detections(session_id, a.pop("p_target"), **a).version
+
+
+def apply_to_session(session: Session, op: tuple[str, dict[str, Any]]) -> None:
+    kind, args = op
+    if kind == "utterance":
+        session.belief.apply_utterance(args["mixture"])
+    elif kind == "labels":
+        a = dict(args)
+        session.belief.apply_increments(session.observation_batch(a.pop("labels"), **a))
+    else:
+        a = dict(args)
+        session.belief.apply_increments(session.detection_batch(a.pop("p_target"), **a))
+
+
+def assert_same_belief(got: Session, expected: Session, exact: bool = True) -> None:
+    assert got.version == expected.version
+    if exact:
+        np.testing.assert_array_equal(got.belief.lang, expected.belief.lang)
+        np.testing.assert_array_equal(got.belief.vis, expected.belief.vis)
+    else:
+        np.testing.assert_allclose(got.belief.lang, expected.belief.lang, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(got.belief.vis, expected.belief.vis, rtol=1e-5, atol=1e-5)
+
+
+def assert_unclamped(session: Session) -> None:
+    limits = session.belief.limits
+    assert session.belief.lang.min() > -limits.lang_span
+    assert limits.vis_min < session.belief.vis.min() and session.belief.vis.max() < limits.vis_max
+    assert session.belief.lang.min() < -1.0 and np.abs(session.belief.vis).max() > 1.0  # not a trivial belief
+
+
+# -- a private redis-server -----------------------------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def redis_url() -> Iterator[str]:
+    binary = shutil.which("redis-server")
+    if binary is None:
+        pytest.skip("redis-server is not installed (apt-get install redis-server)")
+    import redis
+
+    with tempfile.TemporaryDirectory(prefix="vlmap-redis-") as workdir:
+        port = free_port()
+        args = [binary, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"]
+        proc = subprocess.Popen(
+            [*args, "--dir", workdir], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+        client = redis.Redis(port=port)
+        try:
+            deadline = time.monotonic() + 10
+            while True:
+                try:
+                    client.ping()
+                    break
+                except redis.ConnectionError:
+                    if proc.poll() is not None or time.monotonic() > deadline:
+                        pytest.fail(f"redis-server did not start on port {port}")
+                    time.sleep(0.05)
+            yield f"redis://127.0.0.1:{port}/0"
+        finally:
+            client.close()
+            proc.terminate()
+            proc.wait(timeout=10)
+
+
+def redis_store(url: str, **kwargs: Any) -> Any:
+    from app.stores.redis_store import RedisSessionStore
+
+    kwargs.setdefault("prefix", f"test-{uuid.uuid4().hex[:8]}")
+    kwargs.setdefault("block_voxels", 1024)  # several blocks even on the small test grid
+    return RedisSessionStore(url, **kwargs)
+
+
+@pytest.fixture(params=["memory", "durable", pytest.param("redis", marks=pytest.mark.redis)])
+def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
+    if request.param == "memory":
+        s: Any = MemorySessionStore()
+    elif request.param == "durable":
+        s = MemorySessionStore(tmp_path / "data", snapshot_every=5)
+    else:
+        s = redis_store(request.getfixturevalue("redis_url"))
+    yield s
+    s.close()
+
+
+# -- behaviour every store shares --------------------------------------------------------------------------
+
+
+def test_round_trip_list_and_delete(store: Any) -> None:
+    session = make_session("s-1")
+    session.belief.apply_utterance(wide_mixture(np.random.default_rng(0)))  # a non-trivial initial belief
+    info = store.create(session)
+    assert (info.id, info.robot_id, info.version, info.n_voxels) == (
+        "s-1",
+        "robot-1",
+        1,
+        session.grid.n_voxels,
+    )
+    got = store.get("s-1")
+    assert_same_belief(got, session)
+    assert {k: v for k, v in got.meta().items() if k != "updated_at"} == {
+        k: v for k, v in session.meta().items() if k != "updated_at"
+    }
+    store.create(make_session("s-2", robot_id="robot-2"))
+    assert [i.id for i in store.list()] == ["s-1", "s-2"]
+    assert [i.id for i in store.list("robot-2")] == ["s-2"]
+    assert store.list("nobody") == []
+    with pytest.raises(InvalidInput):
+        store.create(make_session("s-1"))
+    with pytest.raises(InvalidInput):
+        store.create(make_session("../escape"))
+    store.delete("s-1")
+    for call in (
+        lambda: store.get("s-1"),
+        lambda: store.delete("s-1"),
+        lambda: store.apply_utterance("s-1", wide_mixture(np.random.default_rng(1))),
+    ):
+        with pytest.raises(NotFound):
+            call()
+    assert [i.id for i in store.list()] == ["s-2"]
+
+
+def test_updates_match_a_local_reference(store: Any) -> None:
+    session = make_session()
+    reference = session.copy()
+    store.create(session)
+    n = session.grid.n_voxels
+    ops = random_ops(1, 12, n)
+    for number, op in enumerate(ops, start=1):
+        assert apply_to_store(store, session.id, op) == number
+        apply_to_session(reference, op)
+    points = reference.grid.centers(np.array([3, 4, 5]))
+    points = np.vstack([points, [[50.0, 0.0, 0.0]]])
+    result = store.apply_observations(session.id, ["Backpacks", "table", "rucksack", "table"], points=points)
+    assert (result.voxels_updated, result.voxels_outside) == (3, 1)
+    reference.belief.apply_increments(
+        reference.observation_batch(["Backpacks", "table", "rucksack", "table"], points=points)
+    )
+    moved = SceneGraph.model_validate({**SCENE_DICT, "objects": SCENE_DICT["objects"][:1]})
+    assert store.replace_scene_graph(session.id, moved) == len(ops) + 2
+    reference.scene_graph = moved
+    reference.belief.version += 1
+    got = store.get(session.id)
+    assert_same_belief(got, reference)
+    assert got.scene_graph == moved
+    layers = store.read_layers(session.id)
+    np.testing.assert_array_equal(layers.vis, reference.belief.vis)
+    assert layers.version == reference.version
+    expected = summarize(reference.grid, reference.belief.lang, reference.belief.vis, moved)
+    assert store.summary(session.id) == expected
+
+
+def test_rejected_updates_change_nothing(store: Any) -> None:
+    session = make_session()
+    store.create(session)
+    bad_mixture = GaussianMixture(np.array([1.0]), np.array([[np.nan, 0.0, 0.0]]), np.eye(3)[None])
+    with pytest.raises(InvalidInput):
+        store.apply_utterance(session.id, bad_mixture)
+    with pytest.raises(InvalidInput):
+        store.apply_observations(session.id, [7], flat_idx=np.array([0]))  # id 7 is not in the label map
+    with pytest.raises(InvalidInput):
+        store.apply_detections(session.id, [0.5], flat_idx=np.array([session.grid.n_voxels]))
+    got = store.get(session.id)
+    assert got.version == 0 and not got.belief.lang.any() and not got.belief.vis.any()
+
+
+def test_concurrent_updates_on_one_session_equal_the_sequential_sum(store: Any) -> None:
+    session = make_session(limits=UNCLAMPED)  # clamping would make the order matter
+    store.create(session)
+    per_thread = [random_ops(10 + t, 8, session.grid.n_voxels) for t in range(4)]
+    errors: list[BaseException] = []
+
+    def worker(ops: list[tuple[str, dict[str, Any]]]) -> None:
+        try:
+            for op in ops:
+                apply_to_store(store, session.id, op)
+        except BaseException as exc:  # surfaced below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker, args=(ops,)) for ops in per_thread]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    reference = session.copy()
+    for ops in per_thread:
+        for op in ops:
+            apply_to_session(reference, op)
+    assert_unclamped(reference)
+    assert_same_belief(store.get(session.id), reference, exact=False)
+
+
+# -- expiry -----------------------------------------------------------------------------------------------
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 1_000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.mark.parametrize("durable", [False, True])
+def test_memory_sessions_expire_after_idle_ttl(tmp_path: Path, durable: bool) -> None:
+    clock = FakeClock()
+    data_dir = tmp_path / "data" if durable else None
+    store = MemorySessionStore(data_dir, ttl_s=10.0, clock=clock)
+    session = make_session("idle")
+    store.create(session)
+    clock.now += 8
+    store.apply_detections("idle", [0.6], flat_idx=np.array([0]))  # a write extends the lifetime
+    clock.now += 8
+    assert store.get("idle").version == 1  # reads work but do not extend
+    clock.now += 3
+    with pytest.raises(NotFound):
+        store.get("idle")
+    assert store.list() == []
+    store.create(make_session("idle"))  # the id is free again
+    store.close()
+    if durable:
+        clock.now += 20
+        reopened = MemorySessionStore(data_dir, ttl_s=10.0, clock=clock)
+        assert reopened.list() == []
+        reopened.close()
+
+
+@pytest.mark.redis
+def test_redis_sessions_expire_after_idle_ttl(redis_url: str) -> None:
+    store = redis_store(redis_url, ttl_s=0.6)
+    store.create(make_session("short"))
+    store.create(make_session("kept"))
+    time.sleep(0.4)
+    store.apply_detections("kept", [0.6], flat_idx=np.array([0]))
+    time.sleep(0.4)
+    with pytest.raises(NotFound):
+        store.get("short")
+    assert [i.id for i in store.list()] == ["kept"]
+    assert store.get("kept").version == 1
+    store.close()
+
+
+# -- durability of the memory store ---------------------------------------------------------------------
+
+
+def durable_state(store: MemorySessionStore) -> dict[str, Session]:
+    return {info.id: store.get(info.id) for info in store.list()}
+
+
+def assert_same_sessions(got: dict[str, Session], expected: dict[str, Session]) -> None:
+    assert sorted(got) == sorted(expected)
+    for sid, session in expected.items():
+        assert_same_belief(got[sid], session)
+        assert got[sid].meta() == session.meta()
+
+
+def reopen(data_dir: Path, **kwargs: Any) -> MemorySessionStore:
+    """Open the directory again once the caller dropped its store unclosed (as a crash would)."""
+    gc.collect()  # the dropped store's LOCK file handle goes with it
+    return MemorySessionStore(data_dir, **kwargs)
+
+
+def test_reopen_without_close_gives_the_identical_belief(tmp_path: Path) -> None:
+    data_dir = tmp_path / "data"
+    store = MemorySessionStore(data_dir, snapshot_every=10_000)
+    a, b = make_session("a"), make_session("b", robot_id="robot-2")
+    store.create(a)
+    store.create(b)
+    for op in random_ops(3, 6, a.grid.n_voxels):
+        apply_to_store(store, "a", op)
+    store.replace_scene_graph("b", SceneGraph.model_validate({**SCENE_DICT, "objects": []}))
+    store.apply_utterance("b", wide_mixture(np.random.default_rng(5)))
+    before = durable_state(store)
+    del store
+    store = reopen(data_dir)
+    assert_same_sessions(durable_state(store), before)
+    store.close()
+
+
+@pytest.mark.parametrize("tail", ["short header", "short payload", "bad crc"])
+def test_a_torn_last_record_is_ignored(tmp_path: Path, tail: str) -> None:
+    data_dir = tmp_path / "data"
+    store = MemorySessionStore(data_dir, snapshot_every=10_000)
+    store.create(make_session("a"))
+    for op in random_ops(4, 5, store.get("a").grid.n_voxels):
+        apply_to_store(store, "a", op)
+    before = durable_state(store)
+    segment = max(data_dir.glob("wal-*.log"))
+    torn = {
+        "short header": b"\x10\x00",
+        "short payload": _HEADER.pack(5000, 0) + b"\x81" * 100,
+        "bad crc": _HEADER.pack(4, 12345) + b"\x80\x80\x80\x80",
+    }[tail]
+    with segment.open("ab") as fh:
+        fh.write(torn)  # a crash in the middle of an append
+    del store
+    store = reopen(data_dir)
+    assert_same_sessions(durable_state(store), before)
+    store.apply_detections("a", [0.9], flat_idx=np.array([7]))  # appends after the cut-off record
+    after = durable_state(store)
+    del store
+    store = reopen(data_dir)
+    assert_same_sessions(durable_state(store), after)
+    store.close()
+
+
+def test_snapshots_and_log_replay(tmp_path: Path) -> None:
+    data_dir = tmp_path / "data"
+    store = MemorySessionStore(data_dir, snapshot_every=3)
+    store.create(make_session("a"))
+    store.create(make_session("gone"))
+    ops = random_ops(6, 10, store.get("a").grid.n_voxels)
+    for op in ops:
+        apply_to_store(store, "a", op)
+    store.delete("gone")
+    store.create(make_session("gone"))  # the same id again, a new session
+    store.apply_detections("gone", [0.8], flat_idx=np.array([3]))
+    assert (data_dir / "sessions" / "a.snap").exists()
+    assert len(list(data_dir.glob("wal-*.log"))) <= 2  # compaction dropped the older segments
+    before = durable_state(store)
+    assert before["gone"].version == 1
+    del store
+    store = reopen(data_dir, snapshot_every=3)
+    assert_same_sessions(durable_state(store), before)
+    store.close()
+
+
+def test_a_crash_between_snapshot_and_log_deletion_does_not_double_apply(tmp_path: Path) -> None:
+    data_dir = tmp_path / "data"
+    store = MemorySessionStore(data_dir, snapshot_every=10_000)
+    store.create(make_session("a"))
+    ops = random_ops(7, 8, store.get("a").grid.n_voxels)
+    for op in ops[:5]:
+        apply_to_store(store, "a", op)
+    saved = {p.name: p.read_bytes() for p in data_dir.glob("wal-*.log")}
+    store._compact()  # snapshots "a" and deletes the old segments ...
+    for name, data in saved.items():
+        (data_dir / name).write_bytes(data)  # ... which a crash would have left behind
+    for op in ops[5:]:
+        apply_to_store(store, "a", op)
+    before = durable_state(store)
+    del store
+    store = reopen(data_dir)
+    assert_same_sessions(durable_state(store), before)
+    store.close()
+
+
+def test_a_data_directory_serves_one_store_at_a_time(tmp_path: Path) -> None:
+    first = MemorySessionStore(tmp_path)
+    with pytest.raises(StoreUnavailable):
+        MemorySessionStore(tmp_path)
+    first.close()
+    MemorySessionStore(tmp_path).close()
+
+
+CRASHING_WRITER = """
+import json, sys
+import numpy as np
+from app.belief.session import new_session
+from app.scene_graph.model import SceneGraph
+from app.stores import MemorySessionStore
+
+store = MemorySessionStore(sys.argv[1], snapshot_every=7)
+scene = SceneGraph.model_validate(json.loads(sys.argv[2]))
+session = new_session("robot", scene, "backpack", label_map={0: "floor", 1: "backpack"}, session_id="crash")
+store.create(session)
+k = 0
+while True:
+    k += 1
+    rng = np.random.default_rng(k)
+    labels, idx = rng.integers(0, 2, 400), rng.integers(0, session.grid.n_voxels, 400)
+    result = store.apply_observations("crash", labels, flat_idx=idx)
+    print("ack", result.version, flush=True)
+"""
+
+
+def test_kill_9_loses_no_acknowledged_update(tmp_path: Path) -> None:
+    data_dir = tmp_path / "data"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CRASHING_WRITER, str(data_dir), json.dumps(SCENE_DICT)],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None
+    acked = 0
+    try:
+        for line in proc.stdout:
+            acked = int(line.split()[1])
+            if acked >= 25:
+                break
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+        proc.stdout.close()
+    assert acked >= 25, "the writer died before acknowledging enough updates"
+    store = MemorySessionStore(data_dir)
+    got = store.get("crash")
+    assert got.version >= acked  # it may hold one more update that was logged but not yet acknowledged
+    reference = new_session(
+        "robot", SCENE, "backpack", label_map={0: "floor", 1: "backpack"}, session_id="crash"
+    )
+    for k in range(1, got.version + 1):
+        rng = np.random.default_rng(k)
+        labels, idx = rng.integers(0, 2, 400), rng.integers(0, reference.grid.n_voxels, 400)
+        reference.belief.apply_increments(reference.observation_batch(labels, flat_idx=idx))
+    assert_same_belief(got, reference)
+    store.close()
+
+
+# -- Redis: replicas, blocks, failures --------------------------------------------------------------------
+
+
+@pytest.mark.redis
+def test_two_replicas_updating_one_session_equal_the_sequential_sum(redis_url: str) -> None:
+    first = redis_store(redis_url)
+    second = redis_store(redis_url, prefix=first.prefix)  # another process's view of the same server
+    session = make_session(limits=UNCLAMPED)  # clamping would make the order matter
+    first.create(session)
+    per_thread = [random_ops(20 + t, 6, session.grid.n_voxels) for t in range(4)]
+    errors: list[BaseException] = []
+
+    def worker(replica: Any, ops: list[tuple[str, dict[str, Any]]]) -> None:
+        try:
+            for op in ops:
+                apply_to_store(replica, session.id, op)
+        except BaseException as exc:  # surfaced below
+            errors.append(exc)
+
+    threads = [
+        threading.Thread(target=worker, args=((first, second)[t % 2], ops))
+        for t, ops in enumerate(per_thread)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    reference = session.copy()
+    for ops in per_thread:
+        for op in ops:
+            apply_to_session(reference, op)
+    assert_unclamped(reference)
+    assert_same_belief(second.get(session.id), reference, exact=False)
+    first.close()
+    second.close()
+
+
+@pytest.mark.redis
+def test_an_observation_batch_writes_only_the_blocks_it_touches(redis_url: str) -> None:
+    store = redis_store(redis_url, block_voxels=1024)
+    session = make_session()
+    store.create(session)
+    vis_key = store._key(session.id, "vis")
+    store.apply_observations(session.id, [1, 0], flat_idx=np.array([5, 1030]))
+    assert sorted(int(k) for k in store._client.hkeys(vis_key)) == [0, 1]
+    before = store._client.hget(vis_key, "0")
+    store.apply_observations(session.id, [1], flat_idx=np.array([3 * 1024 + 2]))
+    assert sorted(int(k) for k in store._client.hkeys(vis_key)) == [0, 1, 3]
+    assert store._client.hget(vis_key, "0") == before
+    store.close()
+
+
+@pytest.mark.redis
+def test_a_session_lock_held_elsewhere_makes_updates_wait_then_give_up(redis_url: str) -> None:
+    store = redis_store(redis_url, lock_wait_s=0.2)
+    session = make_session()
+    store.create(session)
+    store._client.set(store._key(session.id, "lock"), "another-replica", px=400)
+    with pytest.raises(StoreUnavailable):
+        store.apply_detections(session.id, [0.9], flat_idx=np.array([0]))
+    time.sleep(0.3)  # the other holder's lock expires
+    assert store.apply_detections(session.id, [0.9], flat_idx=np.array([0])).version == 1
+    store.close()
+
+
+def test_an_unreachable_redis_raises_store_unavailable() -> None:
+    pytest.importorskip("redis")
+    store = open_store(f"redis://127.0.0.1:{free_port()}/0")
+    for call in (lambda: store.get("x"), lambda: store.list(), lambda: store.create(make_session())):
+        with pytest.raises(StoreUnavailable):
+            call()
+    store.close()
+
+
+def test_open_store_picks_the_implementation(tmp_path: Path) -> None:
+    store = open_store(None, data_dir=tmp_path)
+    assert isinstance(store, MemorySessionStore) and isinstance(store, SessionStore)
+    store.close()
+    with pytest.raises(InvalidInput):
+        open_store("postgres://nowhere")
+    assert SensorModel().tp > SensorModel().fp
