@@ -9,6 +9,7 @@ from app.belief.grid import VoxelGrid
 from app.belief.session import (
     BeliefState,
     IncrementBatch,
+    ObservationModel,
     SensorModel,
     Session,
     SessionInfo,
@@ -22,6 +23,7 @@ __all__ = [
     "BeliefState",
     "IncrementBatch",
     "LayerLimits",
+    "ObservationModel",
     "PlaceMass",
     "PosteriorSummary",
     "SensorModel",

@@ -10,6 +10,10 @@ so the belief is a sum of per-voxel log-weights in two layers,
 
     bel(t = i) = softmax(lang + vis)_i = exp(lang_i + vis_i) / sum_n exp(lang_n + vis_n).          (2)
 
+The reference writes the same sum per voxel as log-odds l_i = l_i^vis + l_i^lang and reads each voxel
+through a sigmoid; here exactly one voxel holds the target, so the two additive layers are normalised
+jointly by the softmax (2), and "uniform prior" means 1/N per voxel.
+
 Language layer. Each utterance L_j contributes the language sensor's Gaussian mixture evaluated at the
 voxel centre c_i, times the voxel volume V (so p V approximates the probability mass the utterance puts
 in voxel i):
