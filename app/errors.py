@@ -60,3 +60,7 @@ class Unauthenticated(VLMapError):
 
 class Forbidden(VLMapError):
     """The API key is valid but its role or robot ids do not cover this operation."""
+
+
+class Conflict(VLMapError):
+    """The request conflicts with the resource's state (e.g. observations before the target is known)."""

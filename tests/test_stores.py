@@ -27,7 +27,7 @@ import pytest
 from app.belief.fusion import LayerLimits
 from app.belief.session import SensorModel, Session, new_session
 from app.belief.summary import summarize
-from app.errors import InvalidInput, NotFound, StoreUnavailable
+from app.errors import Conflict, InvalidInput, NotFound, StoreUnavailable
 from app.grounding.mixture import Gaussian, GaussianMixture
 from app.scene_graph.model import SceneGraph
 from app.stores import MemorySessionStore, SessionStore, open_store
@@ -607,3 +607,153 @@ def test_open_store_picks_the_implementation(tmp_path: Path) -> None:
     with pytest.raises(InvalidInput):
         open_store("postgres://nowhere")
     assert SensorModel().tp > SensorModel().fp
+
+
+# -- info() and a target class named later -------------------------------------------------------------------
+
+
+class AttributeSpy:
+    """Stands in for an object and records the names of the attributes read through it."""
+
+    def __init__(self, wrapped: Any) -> None:
+        object.__setattr__(self, "_wrapped", wrapped)
+        object.__setattr__(self, "read", set())
+
+    def __getattr__(self, name: str) -> Any:
+        self.read.add(name)
+        return getattr(self._wrapped, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        setattr(self._wrapped, name, value)
+
+
+def redis_commands(store: Any, call: Callable[[], Any]) -> list[str]:
+    """The commands the Redis server executes while `call()` runs (read through MONITOR)."""
+    marker = f"end-{uuid.uuid4().hex}"
+    with store._client.monitor() as monitor:
+        call()
+        store._client.echo(marker)
+        commands = []
+        while (command := monitor.next_command()["command"]) != f"ECHO {marker}":
+            commands.append(command)
+    return commands
+
+
+def test_info_is_get_info_without_reading_the_layers(store: Any) -> None:
+    session = make_session("meta-only")
+    store.create(session)
+    store.apply_detections("meta-only", [0.7, 0.2], flat_idx=np.array([1, 2]))
+    info = store.info("meta-only")
+    assert info == store.get("meta-only").info()
+    assert (info.version, info.grid, info.sensor_model, info.label_map) == (
+        1,
+        session.grid,
+        session.sensor_model,
+        LABELS,
+    )
+    assert store.list() == [info]
+    if isinstance(store, MemorySessionStore):
+        stored = store._entries["meta-only"].session
+        spy = stored.belief = AttributeSpy(stored.belief)
+        assert store.info("meta-only") == info
+        assert not spy.read & {"lang", "vis", "copy"}
+        store.get("meta-only")
+        assert "copy" in spy.read  # the spy does see a read of the layers
+    else:
+        touched = [c for c in redis_commands(store, lambda: store.info("meta-only")) if "{meta-only}" in c]
+        assert touched and all(":meta" in c and ":lang" not in c and ":vis" not in c for c in touched)
+        assert any(":lang" in c for c in redis_commands(store, lambda: store.get("meta-only")))
+    with pytest.raises(NotFound):
+        store.info("absent")
+
+
+def test_a_session_without_a_target_class_takes_detections_and_refuses_labels_until_named(store: Any) -> None:
+    session = new_session("robot-1", SCENE, "", label_map=LABELS, session_id="unnamed")
+    store.create(session)
+    assert store.info("unnamed").target_label == ""
+    with pytest.raises(Conflict, match="target class is unknown"):
+        store.apply_observations("unnamed", [1, 0], flat_idx=np.array([3, 4]))
+    assert store.apply_detections("unnamed", [0.8], flat_idx=np.array([3])).version == 1
+    for bad in ("", " _ ", "sofa"):  # no class at all; a class the label map does not name
+        with pytest.raises(InvalidInput) as error:
+            store.set_target_label("unnamed", bad)
+        assert error.value.field == "target_label"
+    assert store.info("unnamed").version == 1  # rejected changes change nothing
+    assert store.set_target_label("unnamed", "Backpacks") == 2
+    assert store.info("unnamed").target_label == "Backpacks"
+    assert store.apply_observations("unnamed", [1, 0], flat_idx=np.array([3, 4])).version == 3
+    with pytest.raises(NotFound):
+        store.set_target_label("absent", "backpack")
+    reference = session.copy()
+    reference.belief.apply_increments(reference.detection_batch([0.8], flat_idx=np.array([3])))
+    reference.set_target_label("Backpacks")
+    reference.belief.version += 1
+    reference.belief.apply_increments(reference.observation_batch([1, 0], flat_idx=np.array([3, 4])))
+    got = store.get("unnamed")
+    assert got.target_label == "Backpacks"
+    assert_same_belief(got, reference)
+
+
+def test_naming_the_target_during_concurrent_updates_loses_none_of_them(store: Any) -> None:
+    session = new_session("robot-1", SCENE, "", session_id="busy", limits=UNCLAMPED)
+    store.create(session)
+    rng = np.random.default_rng(30)
+    batches = [(rng.uniform(0.3, 0.7, 50), rng.integers(0, session.grid.n_voxels, 50)) for _ in range(16)]
+    errors: list[BaseException] = []
+
+    def worker(part: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        try:
+            for p_target, idx in part:
+                store.apply_detections("busy", p_target, flat_idx=idx)
+        except BaseException as exc:  # surfaced below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker, args=(batches[t::2],)) for t in range(2)]
+    for t in threads:
+        t.start()
+    store.set_target_label("busy", "backpack")
+    for t in threads:
+        t.join()
+    assert not errors
+    reference = session.copy()
+    for p_target, idx in batches:
+        reference.belief.apply_increments(reference.detection_batch(p_target, flat_idx=idx))
+    got = store.get("busy")
+    assert (got.version, got.target_label) == (len(batches) + 1, "backpack")
+    np.testing.assert_allclose(got.belief.vis, reference.belief.vis, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("from_snapshot", [False, True])
+def test_a_target_label_set_later_survives_reopening(tmp_path: Path, from_snapshot: bool) -> None:
+    data_dir = tmp_path / "data"
+    # Compacting every 2 records leaves the label only in the snapshot; else only in the log.
+    store = MemorySessionStore(data_dir, snapshot_every=2 if from_snapshot else 10_000)
+    store.create(new_session("robot-1", SCENE, "", label_map=LABELS, session_id="later"))
+    store.apply_detections("later", [0.8], flat_idx=np.array([3]))
+    assert store.set_target_label("later", "backpack") == 2
+    store.apply_observations("later", [1, 0], flat_idx=np.array([3, 4]))
+    wal_bytes = sum(p.stat().st_size for p in data_dir.glob("wal-*.log"))
+    assert (wal_bytes == 0) == from_snapshot
+    before = durable_state(store)
+    del store
+    store = reopen(data_dir)
+    assert_same_sessions(durable_state(store), before)
+    assert store.info("later").target_label == "backpack"
+    assert store.apply_observations("later", [1], flat_idx=np.array([5])).version == 4
+    store.close()
+
+
+@pytest.mark.redis
+def test_a_target_label_set_on_one_replica_is_seen_by_another(redis_url: str) -> None:
+    first = redis_store(redis_url)
+    second = redis_store(redis_url, prefix=first.prefix)  # another process's view of the same server
+    first.create(new_session("robot-1", SCENE, "", label_map=LABELS, session_id="shared"))
+    with pytest.raises(Conflict):
+        second.apply_observations("shared", [1], flat_idx=np.array([0]))
+    assert first.set_target_label("shared", "backpack") == 1
+    seen = second.info("shared")
+    assert (seen.target_label, seen.version) == ("backpack", 1)
+    assert second.apply_observations("shared", [1], flat_idx=np.array([0])).version == 2
+    assert first.info("shared").version == 2
+    first.close()
+    second.close()

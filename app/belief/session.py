@@ -10,6 +10,11 @@ Label matching: a robot label names the target when both normalise to the same k
 lower case, "_", "-", "/" and "." read as spaces, the last word made singular ("boxes" -> "box",
 "shelves" -> "shelf"), a few synonyms folded ("sofa" -> "couch", "rucksack" -> "backpack", ...), and spaces
 dropped ("trash can" == "trashcan").
+
+Unknown target: a session may start with an empty target label ("": the class is not known yet, e.g.
+until the first utterance names it). Detector probabilities (equation (5)) need no class and fuse as
+usual; labelled observations (equation (4)) raise `Conflict` until `Session.set_target_label` (or a
+store's `set_target_label`) names the class.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ import math
 import re
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,7 +32,7 @@ import numpy as np
 from app.belief import fusion
 from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_MAX_VOXELS, DEFAULT_VOXEL_SIZE_M, VoxelGrid
 from app.belief.summary import ON_MARGIN_M, PosteriorSummary, summarize
-from app.errors import InvalidInput, LimitExceeded
+from app.errors import Conflict, InvalidInput, LimitExceeded
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
 
@@ -92,6 +97,17 @@ def label_key(name: str) -> str:
     return phrase.replace(" ", "")
 
 
+def check_target_label(target_label: str, label_map: Mapping[int, str]) -> None:
+    """InvalidInput (field "target_label") unless the label names a class the label map (if any) knows."""
+    key = label_key(target_label) if isinstance(target_label, str) else ""
+    if not key:
+        msg = f"the target label must name a class, got {target_label!r}"
+        raise InvalidInput(msg, "target_label")
+    if label_map and not any(label_key(name) == key for name in label_map.values()):
+        msg = f"no name in the session's label_map matches the target {target_label!r}"
+        raise InvalidInput(msg, "target_label")
+
+
 @dataclass(frozen=True)
 class SensorModel:
     """tp = P(label = target | target in the voxel), fp = P(label = target | target not in the voxel)."""
@@ -124,7 +140,7 @@ class UpdateResult:
 
 @dataclass(frozen=True)
 class SessionInfo:
-    """A session without its scene graph and layers (what listings return)."""
+    """A session without its scene graph and layers (what listings and `info` return); "" = unknown target."""
 
     id: str
     robot_id: str
@@ -133,6 +149,9 @@ class SessionInfo:
     created_at: float
     updated_at: float
     version: int
+    grid: VoxelGrid
+    sensor_model: SensorModel
+    label_map: dict[int, str]
 
 
 class BeliefState:
@@ -212,7 +231,8 @@ class ObservationModel:
     """Turns robot messages (labels or detector probabilities at points or voxels) into vision increments.
 
     Holds what that needs of a session: the grid, the target class, the label map and the default sensor
-    model; stores that keep the scene graph apart (Redis) build one without it.
+    model; stores that keep the scene graph apart (Redis) build one without it. An empty `target_label`
+    means the class is not known yet: detections work, labelled observations raise `Conflict`.
     """
 
     def __init__(
@@ -222,8 +242,8 @@ class ObservationModel:
         self.target_label = target_label
         self.sensor_model = sensor_model
         self._target_key = label_key(target_label)
-        if not self._target_key:
-            msg = "the target label is empty"
+        if target_label and not self._target_key:
+            msg = f"the target label {target_label!r} names no class"
             raise InvalidInput(msg, "target_label")
         if any(k < 0 for k in label_map):
             msg = "label ids must be non-negative integers"
@@ -232,13 +252,16 @@ class ObservationModel:
         table = np.full(max(label_map, default=-1) + 1, -1, dtype=np.int8)
         for label_id, name in label_map.items():
             table[label_id] = label_key(name) == self._target_key
-        if label_map and not np.any(table == 1):
+        if self._target_key and label_map and not np.any(table == 1):
             msg = f"no name in label_map matches the target {target_label!r}; name it or send string labels"
             raise InvalidInput(msg, "label_map")
         self._class_by_id = table
 
     def is_target(self, labels: Sequence[int] | Sequence[str] | np.ndarray) -> np.ndarray:
         """(M,) bool: which labels name the target; integer ids must be in the label map."""
+        if not self._target_key:
+            msg = "the session's target class is unknown: set target_label or send an utterance first"
+            raise Conflict(msg)
         arr = np.asarray(labels)
         if arr.ndim != 1:
             msg = f"labels must be a flat list, got shape {arr.shape}"
@@ -345,15 +368,28 @@ class Session:
         return self.belief.version
 
     def info(self) -> SessionInfo:
+        """The metadata without the scene graph or the layers (nothing large is copied)."""
         return SessionInfo(
-            self.id,
-            self.robot_id,
-            self.target_label,
-            self.grid.n_voxels,
-            self.created_at,
-            self.updated_at,
-            self.version,
+            id=self.id,
+            robot_id=self.robot_id,
+            target_label=self.target_label,
+            n_voxels=self.grid.n_voxels,
+            created_at=self.created_at,
+            updated_at=self.updated_at,
+            version=self.version,
+            grid=self.grid,
+            sensor_model=self.sensor_model,
+            label_map=dict(self.label_map),
         )
+
+    def set_target_label(self, target_label: str) -> None:
+        """Name the target class (`check_target_label`) and rebuild the observer; stores bump the version.
+
+        Vision evidence fused before stays in the layers: it was about the previous class, if any.
+        """
+        check_target_label(target_label, self.label_map)
+        self.observer = ObservationModel(self.grid, target_label, self.label_map, self.sensor_model)
+        self.target_label = target_label
 
     def observation_batch(
         self,
@@ -466,7 +502,10 @@ def new_session(
     session_id: str | None = None,
     now: float | None = None,
 ) -> Session:
-    """A fresh session with a uniform belief on `grid`, by default `VoxelGrid.around(scene_graph, ...)`."""
+    """A fresh session with a uniform belief on `grid`, by default `VoxelGrid.around(scene_graph, ...)`.
+
+    `target_label` may be "" (not known yet; see the module docstring).
+    """
     if not robot_id:
         msg = "robot_id must not be empty"
         raise InvalidInput(msg, "robot_id")

@@ -3,7 +3,10 @@
 Every store method is safe to call from many threads at once (the API calls stores from a threadpool),
 and updates to one session are serialised, so concurrent updates add up exactly as if applied one after
 the other. Versions start at 0 on creation and grow by one with every acknowledged update (utterance,
-observation batch, detection batch, scene-graph replacement).
+observation batch, detection batch, scene-graph replacement, target-label change).
+
+A session created with target label "" has no target class yet: `apply_observations` raises `Conflict`
+until `set_target_label` names one; `apply_detections` needs no class.
 
 Expiry: a session expires `ttl_s` seconds after its last write (creation or update); reads do not extend
 it. An expired session behaves as deleted (`NotFound`).
@@ -42,6 +45,10 @@ class SessionStore(Protocol):
         """A copy of the whole session, layers included; NotFound if absent or expired."""
         ...
 
+    def info(self, session_id: str) -> SessionInfo:
+        """The session's metadata (grid, label map, sensor model, version) without reading its layers."""
+        ...
+
     def list(self, robot_id: str | None = None) -> list[SessionInfo]:
         """Live sessions (of one robot, if given), oldest first."""
         ...
@@ -52,6 +59,10 @@ class SessionStore(Protocol):
 
     def replace_scene_graph(self, session_id: str, scene_graph: SceneGraph) -> int:
         """Swap the scene graph (the grid and the layers stay); returns the new version."""
+        ...
+
+    def set_target_label(self, session_id: str, label: str) -> int:
+        """Name the target class (`app.belief.session.check_target_label`); returns the new version."""
         ...
 
     def apply_utterance(self, session_id: str, mixture: GaussianMixture) -> UpdateResult:
@@ -68,7 +79,10 @@ class SessionStore(Protocol):
         tp: float | None = None,
         fp: float | None = None,
     ) -> UpdateResult:
-        """Fuse labelled voxels (fusion equation (4)); tp/fp override the session's sensor model."""
+        """Fuse labelled voxels (fusion equation (4)); tp/fp override the session's sensor model.
+
+        Conflict while the session's target label is "" (unknown).
+        """
         ...
 
     def apply_detections(

@@ -2,10 +2,11 @@
 
 Durability (when `data_dir` is given). Every update is first appended to an append-only log as the
 *operation* (the utterance's mixture parameters; the observation batch's voxel indices and increments;
-the new scene graph), each record framed as [u32 length][u32 crc32][msgpack payload] and stamped with a
-log sequence number (LSN); the file is fsync'd before the update is applied in memory and acknowledged.
-So a `kill -9` at any moment loses nothing that was acknowledged: a crash mid-append leaves a torn last
-record, which the next start recognises (short header, short payload or bad crc), ignores and cuts off.
+the new scene graph; the new target label), each record framed as [u32 length][u32 crc32][msgpack
+payload] and stamped with a log sequence number (LSN); the file is fsync'd before the update is applied in
+memory and acknowledged. So a `kill -9` at any moment loses nothing that was acknowledged: a crash
+mid-append leaves a torn last record, which the next start recognises (short header, short payload or bad
+crc), ignores and cuts off.
 
 Compaction. After `snapshot_every` records or `snapshot_bytes` of log, the log rolls over to a new
 segment; every session changed since its last snapshot is written to `sessions/<id>.snap` (meta + layers +
@@ -45,6 +46,7 @@ from app.belief.session import (
     Session,
     SessionInfo,
     UpdateResult,
+    check_target_label,
     language_log_likelihood,
 )
 from app.belief.summary import PosteriorSummary, summarize
@@ -288,6 +290,9 @@ class MemorySessionStore:
         elif op == "scene_graph":
             session.scene_graph = SceneGraph.model_validate(record["scene_graph"])
             session.belief.version += 1
+        elif op == "target":
+            session.set_target_label(record["label"])
+            session.belief.version += 1
         else:
             msg = f"unknown session-log operation {op!r}"
             raise StoreUnavailable(msg)
@@ -433,6 +438,10 @@ class MemorySessionStore:
         with self._locked(session_id) as entry:
             return entry.session.copy()
 
+    def info(self, session_id: str) -> SessionInfo:
+        with self._locked(session_id) as entry:
+            return entry.session.info()
+
     def list(self, robot_id: str | None = None) -> list[SessionInfo]:
         self._check_open()
         self.purge_expired()
@@ -453,6 +462,18 @@ class MemorySessionStore:
             sg = scene_graph.model_dump(mode="json")
             entry.lsn = self._append({"op": "scene_graph", "sid": session_id, "t": now, "scene_graph": sg})
             entry.session.scene_graph = scene_graph
+            entry.session.belief.version += 1
+            entry.session.updated_at = now
+            version = entry.session.version
+        self._maybe_compact()
+        return version
+
+    def set_target_label(self, session_id: str, label: str) -> int:
+        with self._locked(session_id) as entry:
+            check_target_label(label, entry.session.label_map)  # before logging: a logged change applies
+            now = self._clock()
+            entry.lsn = self._append({"op": "target", "sid": session_id, "t": now, "label": label})
+            entry.session.set_target_label(label)
             entry.session.belief.version += 1
             entry.session.updated_at = now
             version = entry.session.version

@@ -3,7 +3,8 @@
 Keys of session S (the hash tag {S} keeps them in one cluster slot):
 
     <prefix>:s:{S}:meta   hash: static (msgpack: robot, grid, target, label map, sensor model, limits,
-                          creation time), sg (scene graph JSON), version, updated_at
+                          creation time; only the target ever changes), sg (scene graph JSON), version,
+                          updated_at; `info` and `list` read this hash alone
     <prefix>:s:{S}:lang   hash: block number -> float32 bytes of `block_voxels` voxels (absent = zeros)
     <prefix>:s:{S}:vis    hash: the same for the vision layer
     <prefix>:s:{S}:lock   the update lock
@@ -25,6 +26,7 @@ Any Redis failure (connection refused or lost, timeout, out of memory) raises `S
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 import time
@@ -46,6 +48,7 @@ from app.belief.session import (
     Session,
     SessionInfo,
     UpdateResult,
+    check_target_label,
     language_log_likelihood,
 )
 from app.belief.summary import PosteriorSummary, summarize
@@ -95,6 +98,23 @@ def _static_meta(session: Session) -> dict[str, Any]:
     for key in ("scene_graph", "version", "updated_at"):
         del meta[key]
     return meta
+
+
+def _info(session_id: str, static: dict[str, Any], version: bytes, updated_at: bytes) -> SessionInfo:
+    """A `SessionInfo` from the meta hash's fields alone."""
+    grid = VoxelGrid.from_dict(static["grid"])
+    return SessionInfo(
+        id=session_id,
+        robot_id=static["robot_id"],
+        target_label=static["target_label"],
+        n_voxels=grid.n_voxels,
+        created_at=static["created_at"],
+        updated_at=float(updated_at),
+        version=int(version),
+        grid=grid,
+        sensor_model=SensorModel(**static["sensor_model"]),
+        label_map={int(k): str(v) for k, v in static["label_map"]},
+    )
 
 
 class RedisSessionStore:
@@ -247,10 +267,7 @@ class RedisSessionStore:
             except WatchError as exc:
                 msg = f"a session with id {session.id!r} exists"
                 raise InvalidInput(msg, "id") from exc
-        info = session.info()
-        return SessionInfo(
-            info.id, info.robot_id, info.target_label, info.n_voxels, info.created_at, now, info.version
-        )
+        return dataclasses.replace(session.info(), updated_at=now)
 
     def _read(self, session_id: str, parts: tuple[str, ...]) -> tuple[dict[bytes, bytes], ...]:
         """HGETALL of the given hashes in one transaction (a consistent view); NotFound without meta."""
@@ -275,6 +292,16 @@ class RedisSessionStore:
         return self._session_from(meta, self._assemble(lang, n), self._assemble(vis, n))
 
     @_redis_errors
+    def info(self, session_id: str) -> SessionInfo:
+        static_raw, version, updated_at = self._client.hmget(
+            self._key(session_id, "meta"), ["static", "version", "updated_at"]
+        )
+        if static_raw is None:
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        return _info(session_id, msgpack.unpackb(static_raw, raw=False), version, updated_at)
+
+    @_redis_errors
     def list(self, robot_id: str | None = None) -> list[SessionInfo]:
         index = self._index_key(robot_id)
         now_ms = self._clock() * 1000
@@ -284,23 +311,11 @@ class RedisSessionStore:
             for sid in ids:
                 pipe.hmget(self._key(sid, "meta"), ["static", "version", "updated_at"])
             rows = pipe.execute()
-        infos = []
-        for sid, (static_raw, version, updated_at) in zip(ids, rows, strict=True):
-            if static_raw is None:
-                continue  # deleted or expired since the index was read
-            static = msgpack.unpackb(static_raw, raw=False)
-            n = int(np.prod(static["grid"]["shape"]))
-            infos.append(
-                SessionInfo(
-                    sid,
-                    static["robot_id"],
-                    static["target_label"],
-                    n,
-                    static["created_at"],
-                    float(updated_at),
-                    int(version),
-                )
-            )
+        infos = [
+            _info(sid, msgpack.unpackb(static_raw, raw=False), version, updated_at)
+            for sid, (static_raw, version, updated_at) in zip(ids, rows, strict=True)
+            if static_raw is not None  # else deleted or expired since the index was read
+        ]
         return sorted(infos, key=lambda info: (info.created_at, info.id))
 
     @_redis_errors
@@ -325,6 +340,23 @@ class RedisSessionStore:
         def change(pipe: Any, static: dict[str, Any], version: int) -> Callable[[Any], int]:
             def write(tx: Any) -> int:
                 tx.hset(meta_key, "sg", sg_json)
+                return version
+
+            return write
+
+        return self._update(session_id, change)
+
+    @_redis_errors
+    def set_target_label(self, session_id: str, label: str) -> int:
+        meta_key = self._key(session_id, "meta")
+
+        def change(pipe: Any, static: dict[str, Any], version: int) -> Callable[[Any], int]:
+            label_map = {int(k): str(v) for k, v in static["label_map"]}
+            check_target_label(label, label_map)
+            packed = msgpack.packb({**static, "target_label": label}, use_bin_type=True)
+
+            def write(tx: Any) -> int:
+                tx.hset(meta_key, "static", packed)
                 return version
 
             return write
