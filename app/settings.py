@@ -35,10 +35,28 @@ class Settings(BaseSettings):
     max_query_points: int = Field(default=10_000, ge=0, description="query_points allowed per /v1/ground.")
     max_utterance_chars: int = Field(default=1000, ge=1)
 
-    api_keys_file: Path | None = Field(
-        default=None, description='JSON list of {"name", "role", "sha256", "robot_ids"} (see `vlmap keys new`).'
+    store: str = Field(
+        default="memory", description='Session store: "memory" (durable in data_dir) or a redis:// URL.'
     )
-    api_keys: str | None = Field(default=None, description="The same JSON list, inline (when no file is given).")
+    data_dir: Path | None = Field(
+        default=Path("var/sessions"), description="Where the memory store logs updates (None: not durable)."
+    )
+    session_ttl_s: float = Field(
+        default=24 * 3600.0, gt=0, description="Sessions expire after this idle time."
+    )
+    max_sessions_per_robot: int = Field(default=16, ge=1, description="Live sessions per robot (429 above).")
+    max_grid_voxels: int = Field(
+        default=16_000_000, ge=1, description="Voxels per session grid (memory guard)."
+    )
+    max_batch_voxels: int = Field(default=2_000_000, ge=1, description="Voxels per observation batch.")
+
+    api_keys_file: Path | None = Field(
+        default=None,
+        description='JSON list of {"name", "role", "sha256", "robot_ids"} (see `vlmap keys new`).',
+    )
+    api_keys: str | None = Field(
+        default=None, description="The same JSON list, inline (when no file is given)."
+    )
     allow_open: bool = Field(
         default=False, description="Serve without keys on a non-loopback address (refused otherwise)."
     )

@@ -12,10 +12,13 @@ import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 
-from bench.serve_util import percentiles, running_service
+from app.api.launcher import running_service
 
-SCENE = Path(__file__).resolve().parent.parent / "tests" / "resources" / "scenes" / "scannet_scene0590_00.json"
+SCENE = (
+    Path(__file__).resolve().parent.parent / "tests" / "resources" / "scenes" / "scannet_scene0590_00.json"
+)
 UTTERANCES = [
     "I left my backpack on the table",  # two tables: two hypotheses
     "the remote is next to the lamp",
@@ -34,7 +37,9 @@ def main() -> None:
     with running_service() as url, httpx.Client(base_url=url, timeout=30.0) as client:
         model = client.get("/v1/models").json()["models"][0]
         for i in range(args.warmup):
-            client.post("/v1/ground", json={"scene_graph": scene, "utterance": UTTERANCES[i % len(UTTERANCES)]})
+            client.post(
+                "/v1/ground", json={"scene_graph": scene, "utterance": UTTERANCES[i % len(UTTERANCES)]}
+            )
         samples: list[float] = []
         for i in range(args.requests):
             body = {"scene_graph": scene, "utterance": UTTERANCES[i % len(UTTERANCES)]}
@@ -42,10 +47,11 @@ def main() -> None:
             response = client.post("/v1/ground", json=body)
             samples.append((time.perf_counter() - start) * 1000.0)
             response.raise_for_status()
-    stats = percentiles(samples)
-    print(f"POST /v1/ground, {len(scene['objects'])}-object scene, grounder={model['name']}, loopback, sequential")
+    p50, p99 = np.percentile(samples, [50, 99])
+    n_objects = len(scene["objects"])
+    print(f"POST /v1/ground, {n_objects}-object scene, grounder={model['name']}, loopback, sequential")
     print(f"machine: {platform.machine()}, {platform.python_implementation()} {platform.python_version()}")
-    print(f"requests: {len(samples)}  p50: {stats['p50']:.2f} ms  p99: {stats['p99']:.2f} ms  mean: {stats['mean']:.2f} ms")
+    print(f"requests: {len(samples)}  p50: {p50:.2f} ms  p99: {p99:.2f} ms  mean: {np.mean(samples):.2f} ms")
 
 
 if __name__ == "__main__":

@@ -28,7 +28,8 @@ def scene_graph_dict() -> dict[str, Any]:
 
 @pytest.fixture
 def settings() -> Settings:
-    return Settings(_env_file=None, log_json=False)  # type: ignore[call-arg]
+    """In-memory sessions (no data directory), no rate limit: what most tests want."""
+    return Settings(_env_file=None, log_json=False, data_dir=None, rate_limit_per_s=0)  # type: ignore[call-arg]
 
 
 @pytest.fixture

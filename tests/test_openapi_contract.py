@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import msgpack
 import pytest
 import schemathesis
 from fastapi.testclient import TestClient
@@ -17,6 +18,7 @@ from app.api.cli import openapi_spec
 from app.api.observability import Metrics
 from app.api.services import build_sensor
 from app.settings import Settings
+from app.stores import MemorySessionStore
 
 COMMITTED = Path(__file__).resolve().parent.parent / "openapi" / "openapi.json"
 REGENERATE = "vlmap openapi --out openapi/openapi.json"
@@ -51,8 +53,14 @@ _settings = Settings(  # type: ignore[call-arg]
     rate_limit_per_s=0,
     api_keys=json.dumps([{"name": "ci-admin", "role": "admin", "sha256": digest(_ADMIN_KEY)}]),
 )
-_app = create_app(_settings, sensor=build_sensor(_settings, Metrics()))
+_app = create_app(_settings, sensor=build_sensor(_settings, Metrics()), store=MemorySessionStore(None))
 schema = schemathesis.openapi.from_asgi("/openapi.json", _app)
+
+
+@schemathesis.serializer("application/msgpack")
+def _msgpack(ctx: object, value: object) -> bytes:
+    """Generated msgpack bodies: the schema's map, packed (byte strings stay bin)."""
+    return msgpack.packb(value, use_bin_type=True, default=str)
 
 
 @schema.parametrize()

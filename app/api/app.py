@@ -5,18 +5,22 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 import anyio.to_thread
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 
 from app import __version__
+from app.api.deps import reject_unknown_query
 from app.api.errors import install_error_handlers
 from app.api.limits import BodySizeLimitMiddleware
 from app.api.observability import Metrics, RequestContextMiddleware
-from app.api.routes import ground, health, metrics, models, scene_graphs
+from app.api.routes import ground, health, metrics, models, scene_graphs, sessions
+from app.api.schemas import ObservationBatchJson, PackedArray, SensorModelIn
 from app.api.services import Services, build_sensor
 from app.grounding.sensor import LanguageSensor
 from app.settings import Settings, get_settings
+from app.stores.base import SessionStore
 
 log = logging.getLogger("vlmap.app")
 
@@ -27,17 +31,44 @@ DESCRIPTION = (
 )
 
 
-def create_app(settings: Settings | None = None, sensor: LanguageSensor | None = None) -> FastAPI:
-    """Build the service. `sensor` overrides the one the settings describe (tests, benchmarks)."""
+# Bodies that routes read raw (to accept JSON and msgpack) are referenced by hand in their OpenAPI.
+_RAW_BODY_MODELS = (ObservationBatchJson, PackedArray, SensorModelIn)
+
+
+def openapi_with_raw_bodies(app: FastAPI) -> dict[str, Any]:
+    """FastAPI's OpenAPI document plus the schemas of the raw-read bodies, built once."""
+    if app.openapi_schema is None:
+        spec = FastAPI.openapi(app)
+        schemas = spec.setdefault("components", {}).setdefault("schemas", {})
+        for model in _RAW_BODY_MODELS:
+            schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
+            schemas.update(schema.pop("$defs", {}))
+            schemas[model.__name__] = schema
+        app.openapi_schema = spec
+    return app.openapi_schema
+
+
+def create_app(
+    settings: Settings | None = None, sensor: LanguageSensor | None = None, store: SessionStore | None = None
+) -> FastAPI:
+    """Build the service. `sensor` and `store` override what the settings describe (tests, benchmarks)."""
     settings = settings or get_settings()
-    services = Services(settings=settings, metrics=Metrics(), sensor=sensor)
+    services = Services(settings=settings, metrics=Metrics(), sensor=sensor, store=store)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        owns_store = services.store is None
+        if owns_store:
+            services.store = await anyio.to_thread.run_sync(services.open_store)
         if services.sensor is None:
             services.sensor = await anyio.to_thread.run_sync(build_sensor, settings, services.metrics)
-        log.info("ready", extra={"grounder": services.sensor.grounder.name})
-        yield
+        log.info("ready", extra={"grounder": services.sensor.grounder.name, "store": settings.store})
+        try:
+            yield
+        finally:
+            if owns_store and services.store is not None:
+                services.store.close()
+                services.store = None
 
     app = FastAPI(
         title="VL-Map",
@@ -45,10 +76,12 @@ def create_app(settings: Settings | None = None, sensor: LanguageSensor | None =
         description=DESCRIPTION,
         lifespan=lifespan,
         separate_input_output_schemas=False,
+        dependencies=[Depends(reject_unknown_query)],
     )
     app.state.services = services
+    app.openapi = lambda: openapi_with_raw_bodies(app)  # type: ignore[method-assign]
     install_error_handlers(app)
-    for module in (health, models, metrics, ground, scene_graphs):
+    for module in (health, models, metrics, ground, scene_graphs, sessions):
         app.include_router(module.router)
     app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
     app.add_middleware(RequestContextMiddleware, metrics=services.metrics)  # outermost: sees every answer

@@ -5,13 +5,16 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import Depends, Request
+from fastapi.dependencies.models import Dependant
+from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from app.api.auth import OPEN_ACCESS, Principal
 from app.api.services import Services
-from app.errors import ModelUnavailable, Unauthenticated
+from app.errors import InvalidInput, ModelUnavailable, Unauthenticated
 from app.grounding.sensor import LanguageSensor
 from app.settings import Settings
+from app.stores.base import SessionStore
 
 _bearer = HTTPBearer(
     auto_error=False,
@@ -38,6 +41,36 @@ def get_sensor(request: Request) -> LanguageSensor:
     return sensor
 
 
+def get_store(request: Request) -> SessionStore:
+    store = get_services(request).store
+    if store is None:
+        msg = "the session store is not open"
+        raise ModelUnavailable(msg)
+    return store
+
+
+def _query_names(dependant: Dependant) -> frozenset[str]:
+    names = {field.alias for field in dependant.query_params}
+    for sub in dependant.dependencies:
+        names |= _query_names(sub)
+    return frozenset(names)
+
+
+def reject_unknown_query(request: Request) -> None:
+    """422 for query parameters the operation does not declare, or declared ones given twice."""
+    route = request.scope.get("route")
+    if not isinstance(route, APIRoute):
+        return
+    declared = _query_names(route.dependant)
+    for name in request.query_params:
+        if name not in declared:
+            msg = f"unknown query parameter {name!r}"
+            raise InvalidInput(msg, field=name)
+        if len(request.query_params.getlist(name)) > 1:
+            msg = f"give {name!r} at most once"
+            raise InvalidInput(msg, field=name)
+
+
 def get_principal(
     request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ) -> Principal:
@@ -60,3 +93,4 @@ ServicesDep = Annotated[Services, Depends(get_services)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 SensorDep = Annotated[LanguageSensor, Depends(get_sensor)]
 PrincipalDep = Annotated[Principal, Depends(get_principal)]
+StoreDep = Annotated[SessionStore, Depends(get_store)]

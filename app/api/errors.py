@@ -14,6 +14,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api.observability import request_id_var
 from app.errors import (
+    Conflict,
     Forbidden,
     InvalidInput,
     LimitExceeded,
@@ -27,7 +28,7 @@ from app.errors import (
 log = logging.getLogger("vlmap.api")
 
 # Limits whose breach is not a malformed body but a too-large one or too many requests.
-_LIMIT_STATUS = {"max_body_bytes": 413, "rate_limit": 429}
+_LIMIT_STATUS = {"max_body_bytes": 413, "rate_limit": 429, "max_sessions_per_robot": 429}
 # Tags of discriminated unions that pydantic puts in error locations; they are not field names.
 _UNION_TAGS = frozenset({"native", "other"})
 
@@ -106,6 +107,8 @@ async def _domain_error(request: Request, exc: VLMapError) -> JSONResponse:
         return JSONResponse(
             status_code=status, content=error_body("limit_exceeded", str(exc), exc.limit_name)
         )
+    if isinstance(exc, Conflict):
+        return JSONResponse(status_code=409, content=error_body("conflict", str(exc)))
     if isinstance(exc, NotFound):
         return JSONResponse(status_code=404, content=error_body("not_found", str(exc)))
     if isinstance(exc, ModelUnavailable):
@@ -114,13 +117,24 @@ async def _domain_error(request: Request, exc: VLMapError) -> JSONResponse:
     return JSONResponse(status_code=500, content=error_body("internal_error", "internal error"))
 
 
+def allowed_methods(request: Request) -> str:
+    """Every method some route serves at this path (Starlette's 405 names only the first route's)."""
+    methods: set[str] = set()
+    for route in request.app.routes:
+        regex = getattr(route, "path_regex", None)
+        if regex is not None and regex.match(request.url.path):
+            methods |= set(getattr(route, "methods", None) or ())
+    return ", ".join(sorted(methods))
+
+
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     codes = {404: "not_found", 405: "method_not_allowed", 413: "limit_exceeded"}
     code = codes.get(exc.status_code, "http_error")
+    headers = dict(getattr(exc, "headers", None) or {})
+    if exc.status_code == 405:
+        headers["Allow"] = allowed_methods(request)
     return JSONResponse(
-        status_code=exc.status_code,
-        content=error_body(code, str(exc.detail)),
-        headers=getattr(exc, "headers", None),
+        status_code=exc.status_code, content=error_body(code, str(exc.detail)), headers=headers
     )
 
 

@@ -129,3 +129,155 @@ class HealthResponse(BaseModel):
 class ReadyResponse(BaseModel):
     status: Literal["ready"]
     grounder: str
+
+
+# --- sessions -------------------------------------------------------------------------------------------
+
+ROBOT_ID_PATTERN = r"^[A-Za-z0-9._:\-]+$"
+RobotId = Annotated[str, Field(min_length=1, max_length=128, pattern=ROBOT_ID_PATTERN)]
+
+
+class PackedArray(BaseModel):
+    """A numpy array on the msgpack wire: dtype (e.g. "<i4"), shape and the raw little-endian bytes."""
+
+    dtype: Literal["<i4", "<i8", "<f4", "<f8", "<u4", "<u2", "<u1"]
+    shape: list[Annotated[int, Field(ge=0)]]
+    data: bytes
+
+
+class GridSpec(BaseModel):
+    """The voxel grid of a belief; bounds default to the scene graph's extent plus `margin`."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    voxel_size: float = Field(default=0.1, ge=0.02, le=2.0, allow_inf_nan=False, description="Metres.")
+    margin: float = Field(
+        default=0.5, ge=0.0, le=10.0, allow_inf_nan=False, description="Metres around the map."
+    )
+    min_corner: Vec3 | None = Field(default=None, description="Explicit lower corner (with max_corner).")
+    max_corner: Vec3 | None = None
+
+
+class SensorModelIn(BaseModel):
+    """tp = P(label = target | target there), fp = P(label = target | target not there)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    tp: float = Field(default=0.9, gt=0.0, lt=1.0)
+    fp: float = Field(default=0.05, gt=0.0, lt=1.0)
+
+
+class SessionCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    robot_id: RobotId
+    scene_graph: SceneGraphPayload
+    grid: GridSpec | None = None
+    target_label: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=256,
+        description="Target class; else the first utterance's target.",
+    )
+    sensor_model: SensorModelIn | None = None
+    label_map: dict[str, str] | None = Field(
+        default=None, description='Integer label id (as a string key) -> class name, e.g. {"7": "backpack"}.'
+    )
+
+
+class GridOut(BaseModel):
+    min_corner: list[float]
+    shape: list[int]
+    voxel_size: float
+    n_voxels: int
+
+
+class SessionOut(BaseModel):
+    id: str
+    robot_id: str
+    target_label: str | None
+    version: int = Field(description="Belief version: grows by one with every acknowledged update.")
+    created_at: float
+    updated_at: float
+    grid: GridOut | None = None
+
+
+class SessionList(BaseModel):
+    sessions: list[SessionOut]
+
+
+class VoxelOut(BaseModel):
+    index: int
+    center: list[float]
+    probability: float
+
+
+class PlaceOut(BaseModel):
+    kind: Literal["object", "region"]
+    id: str
+    label: str
+    mass: float
+
+
+class PosteriorSummaryOut(BaseModel):
+    """Where the target is, according to the fused belief."""
+
+    n_voxels: int
+    map_voxel: VoxelOut
+    top_voxels: list[VoxelOut]
+    mean: list[float]
+    covariance: list[list[float]]
+    entropy_nats: float
+    information_gain_nats: float = Field(description="KL(posterior || uniform) = log N - entropy.")
+    objects: list[PlaceOut] = Field(
+        description='Mass per scene-graph object, largest first ("0.62 on table 7").'
+    )
+    regions: list[PlaceOut]
+
+
+class BeliefOut(BaseModel):
+    session_id: str
+    version: int
+    target_label: str | None
+    summary: PosteriorSummaryOut
+
+
+class UtteranceIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    utterance: str = Field(min_length=1, max_length=1000)
+    options: GroundOptions | None = None
+
+
+class UtteranceOut(BaseModel):
+    grounding: GroundResponse
+    belief: BeliefOut
+
+
+class ObservationBatchJson(BaseModel):
+    """Labelled voxels (or points) seen by the robot, for small batches; large ones go as msgpack."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    stamp: float | None = Field(default=None, allow_inf_nan=False, description="Sensor time (s), echoed.")
+    voxels: list[Annotated[list[int], Field(min_length=3, max_length=3)]] | None = Field(
+        default=None, description="Voxel indices [i, j, k] in the session's grid."
+    )
+    points: list[Vec3] | None = Field(default=None, description="Points (m) in the scene graph's frame.")
+    labels: list[int] | list[str] | None = Field(
+        default=None, description="One label per voxel: class names, or integer ids of the label map."
+    )
+    p_target: list[Annotated[float, Field(ge=0.0, le=1.0)]] | None = Field(
+        default=None, description="Detector probability that each voxel holds the target (instead of labels)."
+    )
+    sensor_model: SensorModelIn | None = Field(
+        default=None, description="Overrides the session's for this batch."
+    )
+
+
+class ObservationOut(BaseModel):
+    version: int
+    stamp: float | None
+    voxels_updated: int
+    voxels_outside: int = Field(description="Voxels or points outside the grid: counted and skipped.")
+    belief: BeliefOut

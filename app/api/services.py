@@ -18,6 +18,8 @@ from app.grounding.interfaces import Grounder
 from app.grounding.lexical import LexicalProposer
 from app.grounding.sensor import LanguageSensor
 from app.settings import Settings
+from app.stores import open_store
+from app.stores.base import SessionStore
 
 log = logging.getLogger("vlmap.services")
 T = TypeVar("T")
@@ -40,6 +42,7 @@ class Services:
     settings: Settings
     metrics: Metrics
     sensor: LanguageSensor | None = None
+    store: SessionStore | None = None
     limiter: CapacityLimiter = field(init=False)
     keyring: KeyRing = field(init=False)
     rate_limiter: RateLimiter = field(init=False)
@@ -48,6 +51,11 @@ class Services:
         self.limiter = CapacityLimiter(self.settings.worker_threads)
         self.keyring = KeyRing.load(self.settings.api_keys_file, self.settings.api_keys)
         self.rate_limiter = RateLimiter(self.settings.rate_limit_per_s, self.settings.rate_limit_burst)
+
+    def open_store(self) -> SessionStore:
+        """The store the settings name (the memory store replays its log from data_dir first)."""
+        s = self.settings
+        return open_store(s.store, data_dir=s.data_dir, ttl_s=s.session_ttl_s)
 
     async def run(self, func: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Run CPU-bound work in the worker pool so the event loop keeps serving other requests."""

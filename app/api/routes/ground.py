@@ -9,6 +9,7 @@ from app.api.deps import PrincipalDep, SensorDep, ServicesDep, SettingsDep
 from app.api.errors import error_responses
 from app.api.schemas import (
     ComponentOut,
+    GroundOptions,
     GroundRequest,
     GroundResponse,
     HypothesisOut,
@@ -57,17 +58,18 @@ def ground_request(body: GroundRequest, sensor: LanguageSensor, settings: Settin
     if body.query_points is not None and len(body.query_points) > settings.max_query_points:
         msg = f"query_points: {len(body.query_points)} points exceed the limit of {settings.max_query_points}"
         raise LimitExceeded(msg, limit_name="max_query_points")
-    caller = body.options.hypotheses if body.options else None
-    hypotheses = (
-        [Hypothesis(tuple(h.anchor_ids), h.relation, weight=h.weight) for h in caller]
-        if caller is not None
-        else None
-    )
-    result = sensor.ground(scene_graph, body.utterance, hypotheses)
+    result = sensor.ground(scene_graph, body.utterance, caller_hypotheses(body.options))
     densities = None
     if body.query_points:
         densities = result.mixture.logpdf(np.asarray(body.query_points, dtype=np.float64)).tolist()
     return to_response(result, sensor, densities)
+
+
+def caller_hypotheses(options: GroundOptions | None) -> list[Hypothesis] | None:
+    """The hypotheses a caller asked to ground instead of the proposer's, if any."""
+    if options is None or options.hypotheses is None:
+        return None
+    return [Hypothesis(tuple(h.anchor_ids), h.relation, weight=h.weight) for h in options.hypotheses]
 
 
 def to_response(result: Grounding, sensor: LanguageSensor, densities: list[float] | None) -> GroundResponse:

@@ -1,0 +1,451 @@
+"""VL-Map sessions: a per-robot voxel belief fusing utterances (language) and observation batches (vision).
+
+Posterior over the target's voxel i: b_i = softmax_i(lang_i + vis_i), where each utterance adds
+log(p_GMM(c_i) V) to lang and each observed voxel adds a log-likelihood ratio to vis (see app.belief).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import msgpack
+import numpy as np
+from fastapi import APIRouter, Header, Query, Request, Response
+from pydantic import ValidationError
+
+from app.api.auth import Principal
+from app.api.deps import PrincipalDep, SensorDep, ServicesDep, SettingsDep, StoreDep
+from app.api.errors import error_responses, field_path
+from app.api.routes.ground import caller_hypotheses, resolve_scene_graph, to_response
+from app.api.schemas import (
+    ROBOT_ID_PATTERN,
+    BeliefOut,
+    GridOut,
+    GridSpec,
+    ObservationBatchJson,
+    ObservationOut,
+    PosteriorSummaryOut,
+    SceneGraphPayload,
+    SessionCreate,
+    SessionList,
+    SessionOut,
+    UtteranceIn,
+    UtteranceOut,
+)
+from app.api.wire import MSGPACK_TYPES, ObservationBatch, check_batch_size, decode_msgpack_batch, pack_array
+from app.belief.grid import VoxelGrid
+from app.belief.session import SensorModel, SessionInfo, check_target_label, new_session
+from app.errors import InvalidInput, LimitExceeded, UnsupportedMediaType
+from app.grounding.sensor import LanguageSensor
+from app.settings import Settings
+from app.stores.base import SessionStore
+
+router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
+
+_AUTH_ERRORS = (401, 403, 429)
+_WRITE_ERRORS = error_responses(400, *_AUTH_ERRORS, 404, 413, 422, 503)
+_READ_ERRORS = error_responses(*_AUTH_ERRORS, 404, 422, 503)
+
+_OBSERVATION_BODY = {
+    "required": True,
+    "content": {
+        "application/json": {"schema": {"$ref": "#/components/schemas/ObservationBatchJson"}},
+        "application/msgpack": {
+            "schema": {
+                "type": "object",
+                "description": "The same batch as msgpack with raw little-endian arrays (app/api/wire.py).",
+                "additionalProperties": False,
+                "properties": {
+                    "stamp": {"type": "number"},
+                    "voxels": {"$ref": "#/components/schemas/PackedArray"},
+                    "points": {"$ref": "#/components/schemas/PackedArray"},
+                    "labels": {
+                        "oneOf": [
+                            {"$ref": "#/components/schemas/PackedArray"},
+                            {"type": "array", "items": {"type": "string"}},
+                        ]
+                    },
+                    "p_target": {"$ref": "#/components/schemas/PackedArray"},
+                    "sensor_model": {"$ref": "#/components/schemas/SensorModelIn"},
+                },
+            }
+        },
+    },
+}
+
+
+def grid_out(grid: VoxelGrid) -> GridOut:
+    return GridOut(
+        min_corner=list(grid.origin),
+        shape=list(grid.shape),
+        voxel_size=grid.voxel_size,
+        n_voxels=grid.n_voxels,
+    )
+
+
+def session_out(info: SessionInfo) -> SessionOut:
+    return SessionOut(
+        id=info.id,
+        robot_id=info.robot_id,
+        target_label=info.target_label or None,
+        version=info.version,
+        created_at=info.created_at,
+        updated_at=info.updated_at,
+        grid=grid_out(info.grid),
+    )
+
+
+def belief_out(store: SessionStore, session_id: str, top_k: int = 5) -> tuple[BeliefOut, str]:
+    """The posterior summary and its ETag; the version is read on both sides so the two agree."""
+    for _ in range(3):
+        before = store.info(session_id)
+        summary = store.summary(session_id, top_k=top_k)
+        after = store.info(session_id)
+        if before.version == after.version:
+            break
+    body = BeliefOut(
+        session_id=session_id,
+        version=after.version,
+        target_label=after.target_label or None,
+        summary=PosteriorSummaryOut.model_validate(summary.to_dict()),
+    )
+    return body, etag(after.version)
+
+
+def names_a_class(target: str, label_map: dict[int, str]) -> bool:
+    """Whether an utterance's target phrase can serve as the session's target class."""
+    try:
+        check_target_label(target, label_map)
+    except InvalidInput:
+        return False
+    return True
+
+
+def etag(version: int) -> str:
+    return f'"v{version}"'
+
+
+def _grid(spec: GridSpec | None, scene_graph, settings: Settings) -> VoxelGrid:  # type: ignore[no-untyped-def]
+    spec = spec or GridSpec()
+    if (spec.min_corner is None) != (spec.max_corner is None):
+        msg = "give both min_corner and max_corner, or neither"
+        raise InvalidInput(msg, field="grid.min_corner")
+    if spec.min_corner is None:
+        return VoxelGrid.around(
+            scene_graph, voxel_size=spec.voxel_size, margin=spec.margin, max_voxels=settings.max_grid_voxels
+        )
+    low, high = np.asarray(spec.min_corner, dtype=np.float64), np.asarray(spec.max_corner, dtype=np.float64)
+    if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(high > low)):
+        msg = "max_corner must be finite and above min_corner on every axis"
+        raise InvalidInput(msg, field="grid.max_corner")
+    shape = np.ceil((high - low) / spec.voxel_size).astype(np.int64)
+    if float(np.prod(shape.astype(np.float64))) > settings.max_grid_voxels:
+        msg = f"the grid needs {int(np.prod(shape))} voxels, more than the limit {settings.max_grid_voxels}"
+        raise LimitExceeded(msg, limit_name="max_grid_voxels")
+    return VoxelGrid(origin=tuple(low), shape=tuple(int(s) for s in shape), voxel_size=spec.voxel_size)
+
+
+def _label_map(raw: dict[str, str] | None) -> dict[int, str]:
+    out: dict[int, str] = {}
+    for key, name in (raw or {}).items():
+        if not key.isdigit() or len(key) > 9:
+            msg = f"label ids must be non-negative integers, got {key!r}"
+            raise InvalidInput(msg, field=f"label_map.{key}")
+        out[int(key)] = name
+    return out
+
+
+def create(body: SessionCreate, store: SessionStore, settings: Settings) -> SessionOut:
+    scene_graph = resolve_scene_graph(body.scene_graph, settings)
+    if len(store.list(body.robot_id)) >= settings.max_sessions_per_robot:
+        limit = settings.max_sessions_per_robot
+        msg = f"robot {body.robot_id!r} already has {limit} sessions; delete one first"
+        raise LimitExceeded(msg, limit_name="max_sessions_per_robot")
+    sensor = body.sensor_model
+    session = new_session(
+        body.robot_id,
+        scene_graph,
+        body.target_label or "",
+        label_map=_label_map(body.label_map),
+        sensor_model=SensorModel(sensor.tp, sensor.fp) if sensor else None,
+        grid=_grid(body.grid, scene_graph, settings),
+        max_voxels=settings.max_grid_voxels,
+    )
+    return session_out(store.create(session))
+
+
+@router.post(
+    "", operation_id="create_session", status_code=201, response_model=SessionOut, responses=_WRITE_ERRORS
+)
+async def create_session(
+    body: SessionCreate,
+    principal: PrincipalDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    services: ServicesDep,
+) -> SessionOut:
+    """Start a belief for a robot: a uniform prior over a voxel grid around its scene graph."""
+    principal.require_write(body.robot_id)
+    return await services.run(create, body, store, settings)
+
+
+@router.get("", operation_id="list_sessions", response_model=SessionList, responses=_READ_ERRORS)
+async def list_sessions(
+    principal: PrincipalDep,
+    store: StoreDep,
+    services: ServicesDep,
+    robot_id: Annotated[
+        str | None,
+        Query(
+            min_length=1, max_length=128, pattern=ROBOT_ID_PATTERN, description="Only this robot's sessions."
+        ),
+    ] = None,
+) -> SessionList:
+    """List the sessions the caller may read, optionally of one robot (for dashboards)."""
+    infos = await services.run(store.list, robot_id)
+    return SessionList(sessions=[session_out(i) for i in infos if principal.can_read(i.robot_id)])
+
+
+def _readable(store: SessionStore, principal: Principal, session_id: str) -> SessionInfo:
+    info = store.info(session_id)
+    principal.require_read(info.robot_id)
+    return info
+
+
+def _writable(store: SessionStore, principal: Principal, session_id: str) -> SessionInfo:
+    info = store.info(session_id)
+    principal.require_write(info.robot_id)
+    return info
+
+
+@router.get("/{session_id}", operation_id="get_session", response_model=SessionOut, responses=_READ_ERRORS)
+async def get_session(
+    session_id: str, principal: PrincipalDep, store: StoreDep, services: ServicesDep
+) -> SessionOut:
+    """A session's metadata: robot, target class, grid and belief version."""
+    return session_out(await services.run(_readable, store, principal, session_id))
+
+
+def delete(store: SessionStore, principal: Principal, session_id: str) -> None:
+    _writable(store, principal, session_id)
+    store.delete(session_id)
+
+
+@router.delete("/{session_id}", operation_id="delete_session", status_code=204, responses=_READ_ERRORS)
+async def delete_session(
+    session_id: str, principal: PrincipalDep, store: StoreDep, services: ServicesDep
+) -> Response:
+    """Delete a session and its belief."""
+    await services.run(delete, store, principal, session_id)
+    return Response(status_code=204)
+
+
+def replace_scene_graph(
+    store: SessionStore, principal: Principal, session_id: str, payload: object, settings: Settings
+) -> SessionOut:
+    _writable(store, principal, session_id)
+    store.replace_scene_graph(session_id, resolve_scene_graph(payload, settings))  # type: ignore[arg-type]
+    return session_out(store.info(session_id))
+
+
+@router.put(
+    "/{session_id}/scene-graph",
+    operation_id="replace_scene_graph",
+    response_model=SessionOut,
+    responses=_WRITE_ERRORS,
+)
+async def put_scene_graph(
+    session_id: str,
+    scene_graph: SceneGraphPayload,
+    principal: PrincipalDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    services: ServicesDep,
+) -> SessionOut:
+    """Replace the session's scene graph (Hydra keeps mapping); later utterances ground in the new one."""
+    return await services.run(replace_scene_graph, store, principal, session_id, scene_graph, settings)
+
+
+def add_utterance(
+    store: SessionStore, principal: Principal, session_id: str, body: UtteranceIn, sensor: LanguageSensor
+) -> UtteranceOut:
+    _writable(store, principal, session_id)
+    session = store.get(session_id)
+    result = sensor.ground(session.scene_graph, body.utterance, caller_hypotheses(body.options))
+    store.apply_utterance(session_id, result.mixture)
+    target = result.proposal.parse.target
+    if not session.target_label and target and names_a_class(target, session.label_map):
+        store.set_target_label(session_id, target)
+    belief, _ = belief_out(store, session_id)
+    return UtteranceOut(grounding=to_response(result, sensor, None), belief=belief)
+
+
+@router.post(
+    "/{session_id}/utterances",
+    operation_id="add_utterance",
+    response_model=UtteranceOut,
+    responses=_WRITE_ERRORS,
+)
+async def post_utterance(
+    session_id: str,
+    body: UtteranceIn,
+    principal: PrincipalDep,
+    store: StoreDep,
+    sensor: SensorDep,
+    services: ServicesDep,
+) -> UtteranceOut:
+    """Fuse an utterance: ground it in the session's scene graph and add its log-likelihood to every voxel."""
+    return await services.run(add_utterance, store, principal, session_id, body, sensor)
+
+
+def decode_json_batch(raw: bytes, max_voxels: int) -> ObservationBatch:
+    try:
+        body = ObservationBatchJson.model_validate_json(raw)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        field = field_path(first["loc"]) or "body"
+        msg = f"{first['msg']}"
+        raise InvalidInput(msg, field=field) from exc
+    n = len(body.voxels or body.points or [])
+    check_batch_size(max(n, len(body.labels or body.p_target or [])), max_voxels)
+    labels = None
+    if body.labels is not None:
+        labels = np.asarray(body.labels) if body.labels else np.zeros(0, dtype=np.int64)
+        if labels.dtype.kind == "i":
+            labels = labels.astype(np.int64)
+    return ObservationBatch(
+        stamp=body.stamp,
+        voxels=np.asarray(body.voxels, dtype=np.int64).reshape(-1, 3) if body.voxels is not None else None,
+        points=np.asarray(body.points, dtype=np.float64).reshape(-1, 3) if body.points is not None else None,
+        labels=labels,
+        p_target=np.asarray(body.p_target, dtype=np.float64) if body.p_target is not None else None,
+        tp=body.sensor_model.tp if body.sensor_model else None,
+        fp=body.sensor_model.fp if body.sensor_model else None,
+    )
+
+
+def add_observations(
+    store: SessionStore, principal: Principal, session_id: str, batch: ObservationBatch
+) -> ObservationOut:
+    """Map voxels to flat indices (out-of-grid ones counted, not fatal), then fuse the batch."""
+    info = _writable(store, principal, session_id)
+    outside = 0
+    flat_idx = points = None
+    keep = slice(None)
+    if batch.voxels is not None:
+        inside = np.all((batch.voxels >= 0) & (batch.voxels < np.asarray(info.grid.shape)), axis=1)
+        outside = int(len(inside) - inside.sum())
+        flat_idx = info.grid.ijk_to_flat(batch.voxels[inside]).astype(np.int64)
+        keep = inside  # type: ignore[assignment]
+    else:
+        points = batch.points
+    if batch.p_target is not None:
+        result = store.apply_detections(session_id, batch.p_target[keep], points=points, flat_idx=flat_idx)
+    else:
+        assert batch.labels is not None
+        result = store.apply_observations(
+            session_id, batch.labels[keep], points=points, flat_idx=flat_idx, tp=batch.tp, fp=batch.fp
+        )
+    belief, _ = belief_out(store, session_id)
+    return ObservationOut(
+        version=result.version,
+        stamp=batch.stamp,
+        voxels_updated=result.voxels_updated,
+        voxels_outside=outside + result.voxels_outside,
+        belief=belief,
+    )
+
+
+@router.post(
+    "/{session_id}/observations",
+    operation_id="add_observations",
+    response_model=ObservationOut,
+    responses=error_responses(400, *_AUTH_ERRORS, 404, 409, 413, 415, 422, 503),
+    openapi_extra={"requestBody": _OBSERVATION_BODY},
+)
+async def post_observations(
+    session_id: str,
+    request: Request,
+    principal: PrincipalDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    services: ServicesDep,
+) -> ObservationOut:
+    """Fuse one batch of semantic observations (JSON or msgpack) and return the posterior summary."""
+    raw = await request.body()
+    content_type = request.headers.get("content-type", "application/json").split(";")[0].strip().lower()
+    if content_type in MSGPACK_TYPES:
+        batch = await services.run(decode_msgpack_batch, raw, settings.max_batch_voxels)
+    elif content_type == "application/json":
+        batch = await services.run(decode_json_batch, raw, settings.max_batch_voxels)
+    else:
+        msg = f"unsupported content type {content_type!r}: send application/json or application/msgpack"
+        raise UnsupportedMediaType(msg, field="content-type")
+    return await services.run(add_observations, store, principal, session_id, batch)
+
+
+def belief_grid(store: SessionStore, info: SessionInfo, layers: bool) -> bytes:
+    state = store.read_layers(info.id)
+    payload = {
+        "session_id": info.id,
+        "version": state.version,
+        "grid": state.grid.to_dict(),
+        "posterior": pack_array(state.posterior().astype(np.float32)),
+    }
+    if layers:
+        payload["lang"] = pack_array(state.lang)
+        payload["vis"] = pack_array(state.vis)
+    return msgpack.packb(payload, use_bin_type=True)
+
+
+def read_belief(
+    store: SessionStore,
+    principal: Principal,
+    session_id: str,
+    fmt: str,
+    layers: bool,
+    top_k: int,
+    if_none_match: str | None,
+) -> Response | BeliefOut:
+    info = _readable(store, principal, session_id)
+    tag = etag(info.version)
+    if if_none_match is not None and tag in [t.strip() for t in if_none_match.split(",")]:
+        return Response(status_code=304, headers={"ETag": tag})
+    if fmt == "grid":
+        data = belief_grid(store, info, layers)
+        version = msgpack.unpackb(data, raw=False)["version"]  # the layers may be newer than `info`
+        return Response(data, media_type="application/msgpack", headers={"ETag": etag(version)})
+    body, tag = belief_out(store, session_id, top_k)
+    return Response(body.model_dump_json(), media_type="application/json", headers={"ETag": tag})
+
+
+@router.get(
+    "/{session_id}/belief",
+    operation_id="get_belief",
+    response_model=BeliefOut,
+    responses={
+        **_READ_ERRORS,
+        200: {
+            "description": "The posterior summary (JSON), or with format=grid the whole posterior (msgpack).",
+            "content": {"application/msgpack": {"schema": {"type": "string", "format": "binary"}}},
+            "headers": {"ETag": {"description": "The belief version.", "schema": {"type": "string"}}},
+        },
+        304: {"description": "Not modified since the ETag given in If-None-Match."},
+    },
+)
+async def get_belief(
+    session_id: str,
+    principal: PrincipalDep,
+    store: StoreDep,
+    services: ServicesDep,
+    format: Annotated[
+        str, Query(pattern="^(summary|grid)$", description="summary (JSON) or grid (msgpack posterior).")
+    ] = "summary",
+    layers: Annotated[
+        bool, Query(description="With format=grid: also the language and vision layers.")
+    ] = False,
+    top_k: Annotated[int, Query(ge=1, le=100, description="Top voxels in the summary.")] = 5,
+    if_none_match: Annotated[str | None, Header()] = None,
+) -> Response:
+    """The fused posterior: summary (MAP, top voxels, moments, entropy, mass per object) or the whole grid."""
+    return await services.run(read_belief, store, principal, session_id, format, layers, top_k, if_none_match)  # type: ignore[return-value]

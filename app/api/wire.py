@@ -1,0 +1,207 @@
+"""The binary wire format of observation batches and belief grids (msgpack with raw little-endian arrays).
+
+An observation batch is a msgpack map:
+
+    {"stamp": float | nil,
+     "voxels":   {"dtype": "<i4", "shape": [N, 3], "data": <bytes>}   # voxel indices i, j, k  -- or --
+     "points":   {"dtype": "<f4", "shape": [N, 3], "data": <bytes>},  # points in metres (or "<f8")
+     "labels":   {"dtype": "<u4", "shape": [N],    "data": <bytes>}   # label-map ids  -- or --
+                 ["backpack", "chair", ...],                            # class names  -- or --
+     "p_target": {"dtype": "<f4", "shape": [N],    "data": <bytes>},  # detector probabilities
+     "sensor_model": {"tp": float, "fp": float} | nil}
+
+It means exactly what the JSON batch (`ObservationBatchJson`) means; both decode into `ObservationBatch`.
+A belief grid (GET .../belief?format=grid) uses the same array encoding.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from app.errors import InvalidInput
+
+MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
+
+_ALLOWED_DTYPES = {
+    "voxels": ("<i4", "<i8"),
+    "points": ("<f4", "<f8"),
+    "labels": ("<u4", "<i4", "<u2", "<u1"),
+    "p_target": ("<f4", "<f8"),
+}
+
+
+@dataclass(frozen=True)
+class ObservationBatch:
+    """One batch, decoded: exactly one of `voxels`/`points`, exactly one of `labels`/`p_target`."""
+
+    stamp: float | None
+    voxels: np.ndarray | None  # (N, 3) int64
+    points: np.ndarray | None  # (N, 3) float64
+    labels: np.ndarray | None  # (N,) int64 ids or str names
+    p_target: np.ndarray | None  # (N,) float64 in [0, 1]
+    tp: float | None = None
+    fp: float | None = None
+
+    def __post_init__(self) -> None:
+        if (self.voxels is None) == (self.points is None):
+            msg = "give exactly one of voxels or points"
+            raise InvalidInput(msg, field="voxels")
+        if (self.labels is None) == (self.p_target is None):
+            msg = "give exactly one of labels or p_target"
+            raise InvalidInput(msg, field="labels")
+        where = self.voxels if self.voxels is not None else self.points
+        n = len(where)  # type: ignore[arg-type]
+        values_field = "labels" if self.labels is not None else "p_target"
+        values = self.labels if self.labels is not None else self.p_target
+        if len(values) != n:  # type: ignore[arg-type]
+            msg = f"{values_field} has {len(values)} entries for {n} voxels"  # type: ignore[arg-type]
+            raise InvalidInput(msg, field=values_field)
+        if self.points is not None and not np.all(np.isfinite(self.points)):
+            msg = "points must be finite numbers"
+            raise InvalidInput(msg, field="points")
+        if self.p_target is not None and not (
+            np.all(np.isfinite(self.p_target)) and np.all((self.p_target >= 0) & (self.p_target <= 1))
+        ):
+            msg = "p_target must hold probabilities in [0, 1]"
+            raise InvalidInput(msg, field="p_target")
+        for name, rate in (("tp", self.tp), ("fp", self.fp)):
+            if rate is not None and not (0.0 < rate < 1.0):
+                msg = f"{name} must lie strictly between 0 and 1"
+                raise InvalidInput(msg, field=f"sensor_model.{name}")
+
+    def __len__(self) -> int:
+        return len(self.voxels if self.voxels is not None else self.points)  # type: ignore[arg-type]
+
+
+def pack_array(array: np.ndarray) -> dict[str, Any]:
+    """{dtype, shape, data}: the array's little-endian bytes."""
+    arr = np.ascontiguousarray(array)
+    arr = arr.astype(arr.dtype.newbyteorder("<"), copy=False)
+    return {"dtype": arr.dtype.str, "shape": list(arr.shape), "data": arr.tobytes()}
+
+
+def unpack_array(packed: Any, field: str) -> np.ndarray:
+    """The array a {dtype, shape, data} map describes, checked against the dtypes allowed for `field`."""
+    if not isinstance(packed, dict) or set(packed) != {"dtype", "shape", "data"}:
+        msg = "must be a map with exactly dtype, shape and data"
+        raise InvalidInput(msg, field=field)
+    dtype, shape, data = packed["dtype"], packed["shape"], packed["data"]
+    allowed = _ALLOWED_DTYPES[field]
+    if dtype not in allowed:
+        msg = f"dtype {dtype!r} is not one of {list(allowed)}"
+        raise InvalidInput(msg, field=f"{field}.dtype")
+    want_dims = 2 if field in ("voxels", "points") else 1
+    if (
+        not isinstance(shape, list)
+        or len(shape) != want_dims
+        or not all(isinstance(s, int) and s >= 0 for s in shape)
+        or (want_dims == 2 and shape[1] != 3)
+    ):
+        msg = f"shape must be {'[N, 3]' if want_dims == 2 else '[N]'}, got {shape!r}"
+        raise InvalidInput(msg, field=f"{field}.shape")
+    if not isinstance(data, bytes):
+        msg = "data must be raw bytes (msgpack bin)"
+        raise InvalidInput(msg, field=f"{field}.data")
+    itemsize = np.dtype(dtype).itemsize
+    expected = itemsize * int(np.prod(shape))
+    if len(data) != expected:
+        msg = f"{len(data)} bytes do not hold shape {shape} of {dtype} ({expected} bytes)"
+        raise InvalidInput(msg, field=f"{field}.data")
+    return np.frombuffer(data, dtype=np.dtype(dtype)).reshape(shape)
+
+
+def decode_msgpack_batch(body: bytes, max_voxels: int) -> ObservationBatch:
+    """Decode and validate a msgpack observation batch (see the module docstring)."""
+    try:
+        envelope = msgpack.unpackb(body, raw=False, strict_map_key=True, max_bin_len=len(body))
+    except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, TypeError) as exc:
+        msg = f"body is not a msgpack map: {exc}"
+        raise InvalidInput(msg, field="body") from exc
+    if not isinstance(envelope, dict):
+        msg = "body must be a msgpack map"
+        raise InvalidInput(msg, field="body")
+    unknown = set(envelope) - {"stamp", "voxels", "points", "labels", "p_target", "sensor_model"}
+    if unknown:
+        msg = f"unknown keys {sorted(map(str, unknown))}"
+        raise InvalidInput(msg, field="body")
+    stamp = envelope.get("stamp")
+    if stamp is not None and not (isinstance(stamp, int | float) and np.isfinite(stamp)):
+        msg = "stamp must be a finite number"
+        raise InvalidInput(msg, field="stamp")
+    arrays: dict[str, np.ndarray | None] = {}
+    for name in ("voxels", "points", "p_target"):
+        arrays[name] = unpack_array(envelope[name], name) if envelope.get(name) is not None else None
+    labels_raw = envelope.get("labels")
+    if labels_raw is None:
+        labels = None
+    elif isinstance(labels_raw, list):
+        if not all(isinstance(x, str) for x in labels_raw):
+            msg = "a label list must hold class names (strings); send ids as a packed array"
+            raise InvalidInput(msg, field="labels")
+        labels = np.asarray(labels_raw, dtype=str)
+    else:
+        labels = unpack_array(labels_raw, "labels").astype(np.int64)
+    sensor = envelope.get("sensor_model") or {}
+    if not isinstance(sensor, dict) or set(sensor) - {"tp", "fp"}:
+        msg = "sensor_model must be a map with tp and/or fp"
+        raise InvalidInput(msg, field="sensor_model")
+    batch = ObservationBatch(
+        stamp=float(stamp) if stamp is not None else None,
+        voxels=arrays["voxels"].astype(np.int64) if arrays["voxels"] is not None else None,
+        points=arrays["points"].astype(np.float64) if arrays["points"] is not None else None,
+        labels=labels,
+        p_target=arrays["p_target"].astype(np.float64) if arrays["p_target"] is not None else None,
+        tp=_rate(sensor.get("tp"), "tp"),
+        fp=_rate(sensor.get("fp"), "fp"),
+    )
+    check_batch_size(len(batch), max_voxels)
+    return batch
+
+
+def _rate(value: Any, name: str) -> float | None:
+    if value is None:
+        return None
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        msg = "must be a number"
+        raise InvalidInput(msg, field=f"sensor_model.{name}")
+    return float(value)
+
+
+def check_batch_size(n: int, max_voxels: int) -> None:
+    from app.errors import LimitExceeded
+
+    if n > max_voxels:
+        msg = f"a batch may carry at most {max_voxels} voxels, got {n}"
+        raise LimitExceeded(msg, limit_name="max_batch_voxels")
+
+
+def encode_msgpack_batch(
+    *,
+    voxels: np.ndarray | None = None,
+    points: np.ndarray | None = None,
+    labels: np.ndarray | list[str] | None = None,
+    p_target: np.ndarray | None = None,
+    stamp: float | None = None,
+    tp: float | None = None,
+    fp: float | None = None,
+) -> bytes:
+    """The msgpack body for a batch: int32 voxels or float32 points, uint32 ids or names, float32 p_target."""
+    envelope: dict[str, Any] = {"stamp": stamp}
+    if voxels is not None:
+        envelope["voxels"] = pack_array(np.asarray(voxels, dtype=np.int32).reshape(-1, 3))
+    if points is not None:
+        envelope["points"] = pack_array(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+    if labels is not None:
+        arr = np.asarray(labels)
+        envelope["labels"] = (
+            [str(x) for x in arr] if arr.dtype.kind in "US" else pack_array(arr.astype(np.uint32))
+        )
+    if p_target is not None:
+        envelope["p_target"] = pack_array(np.asarray(p_target, dtype=np.float32))
+    if tp is not None or fp is not None:
+        envelope["sensor_model"] = {k: v for k, v in (("tp", tp), ("fp", fp)) if v is not None}
+    return msgpack.packb(envelope, use_bin_type=True)

@@ -1,0 +1,297 @@
+"""/v1/sessions in process: life cycle, fusion through the API, encodings, ETags, errors that leave beliefs alone."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from app.api.wire import encode_msgpack_batch, pack_array
+from tests.conftest import load_resource_json
+
+
+@pytest.fixture
+def two_rooms() -> dict[str, Any]:
+    """Two tables (kitchen t1, living room t2), a counter and a sofa."""
+    return load_resource_json("scenes/two_rooms.json")
+
+
+def _create(client: TestClient, scene_graph: dict, **fields: Any) -> dict[str, Any]:
+    response = client.post("/v1/sessions", json={"robot_id": "r7", "scene_graph": scene_graph, **fields})
+    assert response.status_code == 201, response.text
+    return response.json()
+
+
+def _grid(client: TestClient, session_id: str, layers: bool = False) -> dict[str, Any]:
+    response = client.get(f"/v1/sessions/{session_id}/belief", params={"format": "grid", "layers": layers})
+    assert response.status_code == 200
+    assert response.headers["content-type"] == "application/msgpack"
+    data = msgpack.unpackb(response.content, raw=False)
+    out = {"version": data["version"], "etag": response.headers["etag"]}
+    for name in ("posterior", "lang", "vis"):
+        if name in data:
+            packed = data[name]
+            out[name] = np.frombuffer(packed["data"], dtype=packed["dtype"]).reshape(packed["shape"])
+    return out
+
+
+def _voxel_of(session: dict[str, Any], point: list[float]) -> list[int]:
+    grid = session["grid"]
+    return [int((p - o) // grid["voxel_size"]) for p, o in zip(point, grid["min_corner"], strict=True)]
+
+
+def test_life_cycle(client: TestClient, two_rooms: dict) -> None:
+    session = _create(client, two_rooms, target_label="backpack")
+    sid = session["id"]
+    assert session["version"] == 0 and session["robot_id"] == "r7" and session["target_label"] == "backpack"
+    assert session["grid"]["voxel_size"] == 0.1
+    assert session["grid"]["n_voxels"] == int(np.prod(session["grid"]["shape"]))
+    assert client.get(f"/v1/sessions/{sid}").json() == session
+    assert [s["id"] for s in client.get("/v1/sessions", params={"robot_id": "r7"}).json()["sessions"]] == [
+        sid
+    ]
+    assert client.get("/v1/sessions", params={"robot_id": "other"}).json()["sessions"] == []
+    assert client.delete(f"/v1/sessions/{sid}").status_code == 204
+    assert client.get(f"/v1/sessions/{sid}").status_code == 404
+    assert client.get(f"/v1/sessions/{sid}/belief").json()["code"] == "not_found"
+
+
+def test_uniform_prior_then_an_utterance_puts_mass_on_the_tables(client: TestClient, two_rooms: dict) -> None:
+    sid = _create(client, two_rooms)["id"]
+    prior = client.get(f"/v1/sessions/{sid}/belief").json()
+    assert prior["version"] == 0
+    assert prior["summary"]["information_gain_nats"] == pytest.approx(0.0, abs=1e-6)
+    response = client.post(
+        f"/v1/sessions/{sid}/utterances", json={"utterance": "I left my backpack on the table"}
+    )
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert {h["anchor_ids"][0] for h in body["grounding"]["hypotheses"]} == {"t1", "t2"}
+    belief = body["belief"]
+    assert belief["version"] == 2  # the utterance, then the target class learnt from it
+    assert belief["target_label"] == "backpack"
+    assert belief["summary"]["information_gain_nats"] > 2.0
+    top_places = {p["id"] for p in belief["summary"]["objects"][:2]}
+    assert top_places == {"t1", "t2"}
+
+
+def test_region_mention_and_repeated_utterances_add_up(client: TestClient, two_rooms: dict) -> None:
+    sid = _create(client, two_rooms, target_label="backpack")["id"]
+    client.post(f"/v1/sessions/{sid}/utterances", json={"utterance": "the backpack is on the table"})
+    once = _grid(client, sid, layers=True)
+    client.post(
+        f"/v1/sessions/{sid}/utterances", json={"utterance": "the backpack is on the table in the kitchen"}
+    )
+    twice = _grid(client, sid, layers=True)
+    assert twice["version"] == 2
+    summary = client.get(f"/v1/sessions/{sid}/belief").json()["summary"]
+    assert summary["objects"][0]["id"] == "t1"  # the kitchen table now dominates
+    assert twice["posterior"].max() > once["posterior"].max()
+
+
+def test_vision_moves_mass_to_an_observed_target_and_away_from_other_labels(
+    client: TestClient, two_rooms: dict
+) -> None:
+    session = _create(client, two_rooms, target_label="backpack")
+    sid = session["id"]
+    client.post(f"/v1/sessions/{sid}/utterances", json={"utterance": "my backpack is on the table"})
+    before = _grid(client, sid)["posterior"]
+    on_t1 = _voxel_of(session, [1.5, 0.5, 0.85])
+    on_t2 = _voxel_of(session, [-2.0, 1.0, 0.55])
+    batch = {"voxels": [on_t1, on_t2], "labels": ["backpack", "table"]}
+    response = client.post(f"/v1/sessions/{sid}/observations", json=batch)
+    assert response.status_code == 200, response.text
+    after = _grid(client, sid)["posterior"]
+    shape = tuple(session["grid"]["shape"])
+    i1, i2 = np.ravel_multi_index(tuple(on_t1), shape), np.ravel_multi_index(tuple(on_t2), shape)
+    assert after[i1] > before[i1]
+    assert after[i2] < before[i2]
+    assert response.json()["voxels_updated"] == 2
+
+
+def test_json_and_msgpack_batches_give_identical_beliefs(client: TestClient, two_rooms: dict) -> None:
+    rng = np.random.default_rng(3)
+    a = _create(client, two_rooms, target_label="backpack", label_map={"0": "floor", "1": "backpack"})
+    b = _create(client, two_rooms, target_label="backpack", label_map={"0": "floor", "1": "backpack"})
+    shape = np.array(a["grid"]["shape"])
+    voxels = rng.integers(0, shape, size=(500, 3))
+    labels = rng.integers(0, 2, size=500)
+    points = np.asarray(a["grid"]["min_corner"]) + (voxels + 0.5) * a["grid"]["voxel_size"]
+    json_body = {"stamp": 1.5, "voxels": voxels.tolist(), "labels": labels.tolist()}
+    r1 = client.post(f"/v1/sessions/{a['id']}/observations", json=json_body)
+    packed = encode_msgpack_batch(points=points, labels=labels, stamp=1.5)
+    r2 = client.post(
+        f"/v1/sessions/{b['id']}/observations",
+        content=packed,
+        headers={"content-type": "application/msgpack"},
+    )
+    assert r1.status_code == r2.status_code == 200, (r1.text, r2.text)
+    assert r1.json()["stamp"] == r2.json()["stamp"] == 1.5
+    np.testing.assert_array_equal(_grid(client, a["id"], True)["vis"], _grid(client, b["id"], True)["vis"])
+
+
+def test_etag_and_not_modified(client: TestClient, two_rooms: dict) -> None:
+    sid = _create(client, two_rooms, target_label="backpack")["id"]
+    first = client.get(f"/v1/sessions/{sid}/belief")
+    etag = first.headers["etag"]
+    again = client.get(f"/v1/sessions/{sid}/belief", headers={"If-None-Match": etag})
+    assert again.status_code == 304 and again.content == b""
+    client.post(f"/v1/sessions/{sid}/observations", json={"voxels": [[1, 1, 1]], "labels": ["chair"]})
+    changed = client.get(f"/v1/sessions/{sid}/belief", headers={"If-None-Match": etag})
+    assert changed.status_code == 200
+    assert changed.headers["etag"] != etag
+    assert changed.json()["version"] == 1
+
+
+def test_out_of_grid_voxels_are_counted_not_fatal(client: TestClient, two_rooms: dict) -> None:
+    sid = _create(client, two_rooms, target_label="backpack")["id"]
+    batch = {"voxels": [[0, 0, 0], [-1, 0, 0], [10_000, 0, 0]], "labels": ["chair"] * 3}
+    body = client.post(f"/v1/sessions/{sid}/observations", json=batch).json()
+    assert (body["voxels_updated"], body["voxels_outside"]) == (1, 2)
+    points = {"points": [[100.0, 0, 0], [1.5, 0.5, 0.9]], "labels": ["chair", "chair"]}
+    body = client.post(f"/v1/sessions/{sid}/observations", json=points).json()
+    assert (body["voxels_updated"], body["voxels_outside"]) == (1, 1)
+
+
+def test_detector_probabilities_need_no_target_class(client: TestClient, two_rooms: dict) -> None:
+    sid = _create(client, two_rooms)["id"]
+    refused = client.post(
+        f"/v1/sessions/{sid}/observations", json={"voxels": [[2, 2, 2]], "labels": ["chair"]}
+    )
+    assert refused.status_code == 409
+    assert "target" in refused.json()["message"]
+    ok = client.post(f"/v1/sessions/{sid}/observations", json={"voxels": [[2, 2, 2]], "p_target": [0.9]})
+    assert ok.status_code == 200, ok.text
+
+
+def _bad_msgpack(**overrides: Any) -> bytes:
+    envelope: dict[str, Any] = {
+        "voxels": pack_array(np.zeros((2, 3), dtype=np.int32)),
+        "labels": pack_array(np.zeros(2, dtype=np.uint32)),
+    }
+    envelope.update(overrides)
+    return msgpack.packb(envelope, use_bin_type=True)
+
+
+@pytest.mark.parametrize(
+    ("content_type", "body", "status", "field"),
+    [
+        ("application/json", b'{"voxels": [[1, 1, 1]], "labels": ["a", "b"]}', 422, "labels"),
+        ("application/json", b'{"points": [[1, NaN, 1]], "labels": ["a"]}', 422, "points"),
+        ("application/json", b'{"voxels": [[1, 1, 1]]}', 422, "labels"),
+        ("application/json", b'{"voxels": [[1, 1, 1]], "labels": [0], "p_target": [0.2]}', 422, "labels"),
+        ("application/json", b'{"voxels": [[1, 1]], "labels": ["a"]}', 422, "voxels.0"),
+        ("application/json", b'{"voxels": [[1, 1, 1]], "p_target": [1.5]}', 422, "p_target.0"),
+        ("application/json", b"not json", 422, "body"),
+        ("application/msgpack", b"\xc1\xc1", 422, "body"),
+        ("application/msgpack", _bad_msgpack(labels=pack_array(np.zeros(3, dtype=np.uint32))), 422, "labels"),
+        (
+            "application/msgpack",
+            _bad_msgpack(voxels=pack_array(np.zeros((2, 3), dtype=np.float64))),
+            422,
+            "voxels.dtype",
+        ),
+        (
+            "application/msgpack",
+            _bad_msgpack(voxels={"dtype": "<i4", "shape": [2, 3], "data": b"\x00" * 7}),
+            422,
+            "voxels.data",
+        ),
+        (
+            "application/msgpack",
+            _bad_msgpack(points=pack_array(np.full((2, 3), np.nan, dtype=np.float32))),
+            422,
+            "voxels",
+        ),
+        ("application/msgpack", msgpack.packb([1, 2]), 422, "body"),
+        ("text/plain", b"hello", 415, "content-type"),
+    ],
+)
+def test_bad_batches_are_rejected_and_leave_the_belief_untouched(
+    client: TestClient, two_rooms: dict, content_type: str, body: bytes, status: int, field: str
+) -> None:
+    sid = _create(client, two_rooms, target_label="backpack", label_map={"0": "floor", "1": "backpack"})["id"]
+    client.post(f"/v1/sessions/{sid}/observations", json={"voxels": [[3, 3, 3]], "labels": [1]})
+    before = _grid(client, sid, layers=True)
+    response = client.post(
+        f"/v1/sessions/{sid}/observations", content=body, headers={"content-type": content_type}
+    )
+    assert response.status_code == status, response.text
+    assert response.json()["field"] == field
+    after = _grid(client, sid, layers=True)
+    assert after["version"] == before["version"]
+    np.testing.assert_array_equal(after["vis"], before["vis"])
+    np.testing.assert_array_equal(after["lang"], before["lang"])
+
+
+def test_unknown_label_ids_are_rejected(client: TestClient, two_rooms: dict) -> None:
+    sid = _create(client, two_rooms, target_label="backpack", label_map={"0": "floor", "1": "backpack"})["id"]
+    response = client.post(f"/v1/sessions/{sid}/observations", json={"voxels": [[1, 1, 1]], "labels": [7]})
+    assert response.status_code == 422
+    assert response.json()["field"] == "labels"
+
+
+def test_replacing_the_scene_graph_affects_later_utterances(client: TestClient, two_rooms: dict) -> None:
+    sid = _create(client, two_rooms, target_label="backpack")["id"]
+    grown = {
+        **two_rooms,
+        "objects": [
+            *two_rooms["objects"],
+            {
+                "id": "d1",
+                "label": "desk",
+                "center": [0.5, -1.5, 0.4],
+                "size": [1.0, 0.6, 0.8],
+                "region_id": "kitchen",
+            },
+        ],
+    }
+    response = client.put(f"/v1/sessions/{sid}/scene-graph", json=grown)
+    assert response.status_code == 200, response.text
+    assert response.json()["version"] == 1
+    body = client.post(
+        f"/v1/sessions/{sid}/utterances", json={"utterance": "the backpack is on the desk"}
+    ).json()
+    assert body["grounding"]["hypotheses"][0]["anchor_ids"] == ["d1"]
+
+
+def test_session_limits(two_rooms: dict, settings: Any) -> None:
+    from app.api.app import create_app
+
+    tight = settings.model_copy(
+        update={"max_sessions_per_robot": 2, "max_grid_voxels": 50_000, "max_batch_voxels": 4}
+    )
+    with TestClient(create_app(tight)) as client:
+        coarse = {"voxel_size": 0.2}
+        _create(client, two_rooms, grid=coarse)
+        _create(client, two_rooms, grid=coarse)
+        third = client.post("/v1/sessions", json={"robot_id": "r7", "scene_graph": two_rooms, "grid": coarse})
+        assert third.status_code == 429
+        assert third.json()["field"] == "max_sessions_per_robot"
+        fine = client.post("/v1/sessions", json={"robot_id": "r8", "scene_graph": two_rooms})
+        assert fine.status_code == 422
+        assert fine.json()["field"] == "max_voxels"
+        sid = client.get("/v1/sessions").json()["sessions"][0]["id"]
+        batch = {"voxels": [[0, 0, 0]] * 5, "labels": ["a"] * 5}
+        big = client.post(f"/v1/sessions/{sid}/observations", json=batch)
+        assert big.status_code == 422
+        assert big.json()["field"] == "max_batch_voxels"
+
+
+def test_explicit_grid_bounds(client: TestClient, two_rooms: dict) -> None:
+    session = _create(
+        client, two_rooms, grid={"voxel_size": 0.25, "min_corner": [-4, -2, 0], "max_corner": [4, 2, 2]}
+    )
+    assert session["grid"]["shape"] == [32, 16, 8]
+    bad = client.post(
+        "/v1/sessions",
+        json={
+            "robot_id": "r7",
+            "scene_graph": two_rooms,
+            "grid": {"min_corner": [0, 0, 0], "max_corner": [1, -1, 1]},
+        },
+    )
+    assert bad.status_code == 422 and bad.json()["field"] == "grid.max_corner"
