@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -12,6 +13,7 @@ from fastapi.testclient import TestClient
 
 from app.api.app import create_app
 from app.settings import Settings
+from tests.servers import RedisServer, redis_binary
 
 RESOURCES = Path(__file__).parent / "resources"
 
@@ -36,3 +38,24 @@ def settings() -> Settings:
 def client(settings: Settings) -> Iterator[TestClient]:
     with TestClient(create_app(settings)) as test_client:
         yield test_client
+
+
+@pytest.fixture(scope="session")
+def redis_url() -> Iterator[str]:
+    """The Redis that `.ci/run` started (VLMAP_TEST_REDIS_URL), else a private redis-server on loopback.
+
+    Skips only when no redis-server binary exists on this machine (`apt-get install redis-server`).
+    """
+    given = os.environ.get("VLMAP_TEST_REDIS_URL")
+    if given:
+        yield given
+        return
+    binary = redis_binary()
+    if binary is None:
+        pytest.skip("redis-server is not installed (apt-get install redis-server)")
+    server = RedisServer(binary)
+    server.start()
+    try:
+        yield server.url
+    finally:
+        server.close()

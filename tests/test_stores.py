@@ -8,12 +8,9 @@ from __future__ import annotations
 
 import gc
 import json
-import shutil
 import signal
-import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 import uuid
@@ -24,6 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from app.api.launcher import free_port
 from app.belief.fusion import LayerLimits
 from app.belief.session import SensorModel, Session, new_session
 from app.belief.summary import summarize
@@ -139,44 +137,7 @@ def assert_unclamped(session: Session) -> None:
     assert session.belief.lang.min() < -1.0 and np.abs(session.belief.vis).max() > 1.0  # not a trivial belief
 
 
-# -- a private redis-server -----------------------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@pytest.fixture(scope="module")
-def redis_url() -> Iterator[str]:
-    binary = shutil.which("redis-server")
-    if binary is None:
-        pytest.skip("redis-server is not installed (apt-get install redis-server)")
-    import redis
-
-    with tempfile.TemporaryDirectory(prefix="vlmap-redis-") as workdir:
-        port = free_port()
-        args = [binary, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"]
-        proc = subprocess.Popen(
-            [*args, "--dir", workdir], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-        )
-        client = redis.Redis(port=port)
-        try:
-            deadline = time.monotonic() + 10
-            while True:
-                try:
-                    client.ping()
-                    break
-                except redis.ConnectionError:
-                    if proc.poll() is not None or time.monotonic() > deadline:
-                        pytest.fail(f"redis-server did not start on port {port}")
-                    time.sleep(0.05)
-            yield f"redis://127.0.0.1:{port}/0"
-        finally:
-            client.close()
-            proc.terminate()
-            proc.wait(timeout=10)
+# -- Redis: the `redis_url` fixture (tests/conftest.py) gives a real server on loopback ------------------
 
 
 def redis_store(url: str, **kwargs: Any) -> Any:

@@ -19,7 +19,6 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-@contextmanager
 def start_service(env: dict[str, str] | None = None, port: int | None = None) -> tuple[subprocess.Popen, str]:
     """Start `vlmap serve` on 127.0.0.1 (a free port unless given); returns the process and its base URL."""
     port = port or free_port()
