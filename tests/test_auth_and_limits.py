@@ -130,3 +130,100 @@ def test_streamed_body_larger_than_the_limit_is_413(scene_graph_dict: dict) -> N
         )
     assert response.status_code == 413
     assert response.json()["code"] == "limit_exceeded"
+
+
+# --- roles on sessions ------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def secured_sessions(scene_graph_dict: dict) -> Iterator[tuple[TestClient, str, str]]:
+    """A secured service with one session of robot r7 and one of robot r8 (created by the admin)."""
+    settings = _settings(data_dir=None, rate_limit_per_s=0)
+    with TestClient(create_app(settings)) as client:
+        ids = []
+        for robot in ("r7", "r8"):
+            body = {
+                "robot_id": robot,
+                "scene_graph": scene_graph_dict,
+                "target_label": "backpack",
+                "grid": {"voxel_size": 0.25},
+            }
+            response = client.post("/v1/sessions", json=body, headers=_bearer("admin"))
+            assert response.status_code == 201, response.text
+            ids.append(response.json()["id"])
+        yield client, ids[0], ids[1]
+
+
+def _operations(session_id: str) -> dict[str, tuple[str, str, dict]]:
+    return {
+        "get": ("GET", f"/v1/sessions/{session_id}", {}),
+        "belief": ("GET", f"/v1/sessions/{session_id}/belief", {}),
+        "utterance": (
+            "POST",
+            f"/v1/sessions/{session_id}/utterances",
+            {"json": {"utterance": "the bag is on the desk"}},
+        ),
+        "observe": (
+            "POST",
+            f"/v1/sessions/{session_id}/observations",
+            {"json": {"voxels": [[1, 1, 1]], "labels": ["bag"]}},
+        ),
+        "delete": ("DELETE", f"/v1/sessions/{session_id}", {}),
+    }
+
+
+@pytest.mark.parametrize(
+    ("role", "own", "allowed"),
+    [
+        ("robot", True, {"get", "belief", "utterance", "observe", "delete"}),
+        ("robot", False, set()),  # another robot's session: neither read nor write
+        ("viewer", True, {"get", "belief"}),
+        ("viewer", False, {"get", "belief"}),
+        ("admin", False, {"get", "belief", "utterance", "observe", "delete"}),
+    ],
+)
+def test_each_role_may_do_exactly_its_operations(
+    secured_sessions: tuple[TestClient, str, str], role: str, own: bool, allowed: set[str]
+) -> None:
+    client, r7_session, r8_session = secured_sessions
+    session_id = r7_session if own else r8_session
+    for name, (method, path, kwargs) in _operations(session_id).items():
+        before = client.get(f"/v1/sessions/{session_id}", headers=_bearer("admin")).json()
+        response = client.request(method, path, headers=_bearer(role), **kwargs)
+        if name in allowed:
+            assert response.status_code in (200, 204), (name, response.text)
+        else:
+            assert response.status_code == 403, (name, response.status_code)
+            assert response.json()["code"] == "forbidden"
+            after = client.get(f"/v1/sessions/{session_id}", headers=_bearer("admin")).json()
+            assert after == before, f"{name} refused but the session changed"
+
+
+def test_robots_create_only_their_own_sessions_and_list_only_theirs(
+    secured_sessions: tuple[TestClient, str, str], scene_graph_dict: dict
+) -> None:
+    client, _, _ = secured_sessions
+    body = {"scene_graph": scene_graph_dict, "grid": {"voxel_size": 0.25}}
+    assert (
+        client.post("/v1/sessions", json={"robot_id": "r7", **body}, headers=_bearer("robot")).status_code
+        == 201
+    )
+    assert (
+        client.post("/v1/sessions", json={"robot_id": "r8", **body}, headers=_bearer("robot")).status_code
+        == 403
+    )
+    assert (
+        client.post("/v1/sessions", json={"robot_id": "r7", **body}, headers=_bearer("viewer")).status_code
+        == 403
+    )
+    listed = client.get("/v1/sessions", headers=_bearer("robot")).json()["sessions"]
+    assert {s["robot_id"] for s in listed} == {"r7"}
+    assert len(client.get("/v1/sessions", headers=_bearer("viewer")).json()["sessions"]) == 3
+
+
+def test_unauthenticated_writes_change_nothing(secured_sessions: tuple[TestClient, str, str]) -> None:
+    client, r7_session, _ = secured_sessions
+    before = client.get(f"/v1/sessions/{r7_session}", headers=_bearer("admin")).json()
+    for method, path, kwargs in _operations(r7_session).values():
+        assert client.request(method, path, **kwargs).status_code == 401
+    assert client.get(f"/v1/sessions/{r7_session}", headers=_bearer("admin")).json() == before
