@@ -1,4 +1,4 @@
-"""/v1/sessions in process: life cycle, fusion through the API, encodings, ETags, errors that leave beliefs alone."""
+"""/v1/sessions in process: life cycle, fusion, encodings, ETags, and errors that leave beliefs alone."""
 
 from __future__ import annotations
 
