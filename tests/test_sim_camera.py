@@ -112,7 +112,7 @@ def test_only_the_near_face_is_observed_and_free_space_before_it() -> None:
     world = SemanticVoxelWorld(GRID, [cube("b", (2.2, 0.0, 1.0))], floor_z=0.0)  # x from 2.0 to 2.4
     observation = Camera().observe(world, EYE)
     assert np.all(np.diff(observation.flat_idx) > 0)  # unique, sorted
-    box_cells = world.grid.flat_to_ijk(observation.flat_idx[observation.owner == 0])
+    box_cells = world.grid.flat_to_ijk(observation.flat_idx[observation.owner == world.index_of("b")])
     assert set(box_cells[:, 0]) == {70}  # the voxel layer x in [2.0, 2.1): the face towards the camera
     # On the optical axis every voxel from the camera to the box is observed free, nothing behind it.
     on_axis = world.grid.locate(np.array([[x, 0.05, 1.05] for x in np.arange(0.05, 4.0, 0.1)]))[0]
@@ -127,10 +127,21 @@ def test_only_the_near_face_is_observed_and_free_space_before_it() -> None:
     assert len(Camera(CameraConfig(observe_free=False)).observe(world, EYE)) == np.count_nonzero(~free)
 
 
+def test_opened_contents_are_seen_through_their_tunnel() -> None:
+    couch = SceneObject(id="couch", label="couch", center=[1.0, 0.5, 0.45], size=[2.0, 1.0, 0.9])
+    pillow = SceneObject(id="pillow", label="pillow", center=[0.7, 0.5, 0.65], size=[0.4, 0.4, 0.3])
+    remote = SceneObject(id="remote", label="remote", center=[0.65, 0.45, 0.85], size=[0.1, 0.1, 0.1])
+    front = Pose(0.7, -2.0, 1.0, yaw=math.pi / 2)  # 2 m in front of the couch, looking at it
+    assert "pillow" in seen_ids([couch, pillow, remote], front)  # through the tunnel to the couch's front
+    world = SemanticVoxelWorld(GRID, [couch, pillow, remote], floor_z=0.0, open_enclosed=False)
+    observation = Camera().observe(world, front)
+    assert world.index_of("pillow") not in set(observation.owner.tolist())
+
+
 def test_camera_inside_an_object_sees_only_that_voxel() -> None:
     world = SemanticVoxelWorld(GRID, [cube("b", (0.0, 0.0, 1.0), side=1.0)], floor_z=0.0)
     observation = Camera().observe(world, EYE)
-    assert len(observation) == 1 and observation.owner[0] == 0
+    assert len(observation) == 1 and observation.owner[0] == world.index_of("b")
 
 
 # --- traversal against an exact reference ---------------------------------------------------------------

@@ -94,6 +94,33 @@ def test_smaller_box_wins_overlap() -> None:
     assert len(world.object_voxels("t")) == 8 * 8 * 8 - overlap
 
 
+COUCH_GRID = VoxelGrid(origin=(-1.0, -3.0, -0.5), shape=(40, 50, 25), voxel_size=0.1)
+COUCH = box("couch", "couch", [0.0, 0.0, 0.0], [2.0, 1.0, 0.9])  # 20 x 10 x 9 voxels
+PILLOW = box("pillow", "pillow", [0.5, 0.3, 0.5], [0.9, 0.7, 0.8])  # 4 x 4 x 3 voxels, inside the couch's box
+REMOTE = box("remote", "remote", [0.6, 0.4, 0.8], [0.7, 0.5, 0.9])  # 1 voxel, on top of the pillow
+
+
+def test_enclosed_objects_are_opened_by_the_shortest_tunnel() -> None:
+    buried = SemanticVoxelWorld(COUCH_GRID, [COUCH, PILLOW], floor_z=0.0, open_enclosed=False)
+    assert len(buried.object_voxels("couch")) == 1800 - 48
+    world = SemanticVoxelWorld(COUCH_GRID, [COUCH, PILLOW], floor_z=0.0)
+    assert len(world.object_voxels("pillow")) == 48
+    # Up is shortest (one layer between the pillow and the top of the couch's box): 4 x 4 voxels freed.
+    assert len(world.object_voxels("couch")) == 1800 - 48 - 16
+    opened = np.flatnonzero((buried.owner != FREE) & (world.owner == FREE))
+    assert set(world.grid.centers(opened)[:, 2].round(2)) == {0.85}
+
+
+def test_tunnels_never_cut_smaller_objects() -> None:
+    # The remote blocks the way up; the next shortest tunnel runs to the front (-y, three layers).
+    world = SemanticVoxelWorld(COUCH_GRID, [COUCH, PILLOW, REMOTE], floor_z=0.0)
+    assert len(world.object_voxels("remote")) == 1
+    assert len(world.object_voxels("couch")) == 1800 - 48 - 1 - 4 * 3 * 3
+    buried = SemanticVoxelWorld(COUCH_GRID, [COUCH, PILLOW, REMOTE], floor_z=0.0, open_enclosed=False)
+    opened = world.grid.centers(np.flatnonzero((buried.owner != FREE) & (world.owner == FREE)))
+    assert set(opened[:, 1].round(2)) == {0.05, 0.15, 0.25}
+
+
 def test_floor_objects_fill_one_layer_below_the_floor() -> None:
     # A 0.5 m thick floor box (as in ScanNet) must not bury what stands on it.
     objects = [
@@ -108,7 +135,9 @@ def test_floor_objects_fill_one_layer_below_the_floor() -> None:
     assert set(floor_ijk[:, 2]) == {world.floor_layer}
     assert world.grid.axis_centers(2)[world.floor_layer] == pytest.approx(-0.05)
     assert len(world.object_voxels("s")) == 3 * 2 * 1
-    assert SYNTHETIC_FLOOR_ID not in {o.id for o in world.objects}
+    # The world's own floor lies under the objects' extent, beneath the scene's floor.
+    assert len(world.object_voxels(SYNTHETIC_FLOOR_ID)) == 0
+    assert world.free_floor.shape == (20, 20) and world.free_floor[2, 2] and not world.free_floor[12, 12]
 
 
 def test_floor_z_estimate_ignores_outliers_and_clips_to_the_floor_box() -> None:
@@ -154,6 +183,7 @@ def test_free_floor_inside_walls_around_obstacles() -> None:
     # Inside the walls (0.7..4.3) less the 0.2 m margin: 3.2 m -> 32 cells a side, less the inflated table
     # (1.0 m + 2 x 0.15 m reach of 0.1 m cells: 14 cells a side, minus the four 0.2 m-radius corners).
     assert free.sum() == 32 * 32 - (14 * 14 - 4)
+    assert world.free_floor_area == pytest.approx(free.sum() * 0.01)
     points = world.free_floor_points()
     assert len(points) == free.sum() and np.all(world.is_free_floor(points))
 

@@ -112,8 +112,18 @@ class RayCast:
 
     hit_flat: np.ndarray  # (R,) flat index of the first occupied voxel within range, -1 if none
     hit_t: np.ndarray  # (R,) distance at which the ray enters that voxel, inf if none
-    free_flat: np.ndarray  # (F,) free voxels the rays entered before their hit (a voxel may repeat)
-    free_ray: np.ndarray  # (F,) the ray that entered each of them
+    voxels: np.ndarray  # (R, S) flat indices of the voxels each ray entered, in order (valid where masked)
+    free_mask: np.ndarray  # (R, S) bool: the voxel is free and entered within range before the ray's hit
+
+    @property
+    def free_flat(self) -> np.ndarray:
+        """(F,) the free voxels the rays entered before their hit (a voxel may repeat)."""
+        return self.voxels[self.free_mask]
+
+    @property
+    def free_ray(self) -> np.ndarray:
+        """(F,) the ray that entered each of `free_flat`."""
+        return np.nonzero(self.free_mask)[0]
 
 
 def cast_rays(
@@ -138,46 +148,44 @@ def cast_rays(
     t_first = (low + (ijk0 + (step > 0)) * s - o) * inv  # (R, 3) first boundary crossing per axis
     t_delta = s * np.abs(inv)  # (R, 3)
 
-    # Within max_range a ray crosses at most C boundaries along each axis: list them all (R, 3, C) and sort
-    # them by t. The sort key adds a negligible per-axis offset so that exact ties (a ray through a voxel
-    # edge) go x before y before z, as argmin does in the classic loop.
-    n_cross = math.ceil(max_range / s) + 1
-    crossings = (t_first[:, :, None] + t_delta[:, :, None] * np.arange(n_cross)).reshape(
-        n_rays, -1
-    )  # (R, 3C)
-    tie_break = np.repeat(np.array([0.0, 1.0, 2.0]) * (_TIE_BREAK * s), n_cross)  # (3C,)
-    order = np.argsort(crossings + tie_break, axis=1)  # (R, 3C)
+    # Along axis k a ray crosses boundaries at t_first[k] + n t_delta[k], n = 0, 1, ...; at most C_k of them
+    # lie within range (C_k: the most any ray makes). List them all, (R, C_x + C_y + C_z), and sort them by t.
+    # The sort key adds a negligible per-axis offset so that exact ties (a ray through a voxel edge) go x
+    # before y before z, as argmin does in the classic loop.
+    per_axis = np.floor((max_range - t_first) / t_delta) + 1  # (R, 3) crossings within range
+    n_cross = np.clip(per_axis.max(axis=0, initial=0), 1, math.ceil(max_range / s) + 1).astype(np.int64)
+    axis_of = np.repeat(np.arange(3), n_cross)  # (C,) the axis of each column
+    count = np.concatenate([np.arange(n) for n in n_cross])  # (C,) n of each column
+    crossings = t_first[:, axis_of] + t_delta[:, axis_of] * count  # (R, C)
+    order = np.argsort(crossings + axis_of * (_TIE_BREAK * s), axis=1)  # (R, C)
     # Keep the first S - 1 crossings, S - 1 >= the most any ray makes within range.
-    per_axis = np.floor((max_range - t_first) / t_delta) + 1  # (R, 3) crossings within range, per axis
-    n_steps = int(min(np.clip(per_axis, 0, n_cross).sum(axis=1).max(initial=0) + 1, 3 * n_cross))
+    n_steps = int(min(np.clip(per_axis, 0, None).sum(axis=1).max(initial=0) + 1, len(axis_of)))
     order = order[:, :n_steps]
-    t_enter = np.concatenate(
-        [t_in[:, None], np.take_along_axis(crossings, order, axis=1)], axis=1
-    )  # (R, S): the t at which each ray enters its S = n_steps + 1 voxels
+    rows = np.arange(n_rays)
+    t_enter = np.empty((n_rays, n_steps + 1))  # (R, S): the t at which each ray enters its S voxels
+    t_enter[:, 0] = t_in
+    t_enter[:, 1:] = crossings.ravel()[(rows * len(axis_of))[:, None] + order]
     # Each crossing moves the flat index by +-stride of its axis.
     strides = np.array([shape[1] * shape[2], shape[2], 1])
-    jumps = np.repeat(step * strides, n_cross, axis=1)  # (R, 3C)
+    jumps = (step * strides).ravel()  # (3R,)
     flat = np.empty(t_enter.shape, dtype=np.int64)  # (R, S) the voxels entered
     flat[:, 0] = ijk0 @ strides
-    flat[:, 1:] = np.take_along_axis(jumps, order, axis=1)
+    flat[:, 1:] = jumps[(3 * rows)[:, None] + axis_of[order]]
     np.cumsum(flat, axis=1, out=flat)
     # A ray is in the (convex) grid from t_in to t_out; the crossing that leaves it is computed from the other
     # side, so compare with a margin far below a voxel to keep rounding from letting it through.
-    inside = (
-        enters[:, None] & (t_enter <= max_range) & (t_enter < (t_out - _TIE_BREAK * s)[:, None])
-    )  # (R, S)
-    flat = np.where(inside, flat, 0)
+    in_grid = t_enter < (t_out - _TIE_BREAK * s)[:, None]  # (R, S)
+    inside = enters[:, None] & (t_enter <= max_range) & in_grid
+    flat[~inside] = 0
     occupied = inside & (owner.reshape(-1)[flat] != FREE)  # (R, S)
     has_hit = occupied.any(axis=1)  # (R,)
     first = np.where(has_hit, np.argmax(occupied, axis=1), t_enter.shape[1])  # (R,) step of the first hit
-    rows = np.arange(n_rays)
     hit_at = np.minimum(first, t_enter.shape[1] - 1)
-    free = inside & (np.arange(t_enter.shape[1]) < first[:, None])  # (R, S)
     return RayCast(
         hit_flat=np.where(has_hit, flat[rows, hit_at], -1),
         hit_t=np.where(has_hit, t_enter[rows, hit_at], np.inf),
-        free_flat=flat[free],
-        free_ray=np.nonzero(free)[0],
+        voxels=flat,
+        free_mask=inside & (np.arange(t_enter.shape[1]) < first[:, None]),
     )
 
 
@@ -217,12 +225,12 @@ class Camera:
     def observe(self, world: SemanticVoxelWorld, pose: Pose) -> Observation:
         """The voxels seen from `pose`: every ray's first hit, and the free voxels before it if configured."""
         result = self.cast(world, pose)
-        seen = [result.hit_flat[result.hit_flat >= 0]]
+        n_voxels = world.grid.n_voxels
+        # A mask over the grid (plus one slot for "nothing") is cheaper than np.unique at these sizes.
+        seen = np.zeros(n_voxels + 1, dtype=bool)
+        seen[np.where(result.hit_flat >= 0, result.hit_flat, n_voxels)] = True
         if self.config.observe_free:
-            seen.append(result.free_flat)
-        seen_mask = np.zeros(world.grid.n_voxels, dtype=bool)  # cheaper than np.unique at these sizes
-        for flat in seen:
-            seen_mask[flat] = True
-        flat_idx = np.flatnonzero(seen_mask)
+            seen[np.where(result.free_mask, result.voxels, n_voxels)] = True
+        flat_idx = np.flatnonzero(seen[:n_voxels])
         owner = world.owner.reshape(-1)[flat_idx]
         return Observation(pose=pose, flat_idx=flat_idx, owner=owner, labels=world.labels_of(owner))
