@@ -20,8 +20,8 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=1, le=65535)
 
-    grounder: Literal["geometric", "fixed"] = Field(
-        default="geometric", description="Spatial grounder behind /v1/ground."
+    grounder: Literal["lsm", "geometric", "fixed"] = Field(
+        default="geometric", description="Default spatial grounder; requests may pick another loaded one."
     )
     model_dir: Path = Field(default=REPO_ROOT / "models", description="Where shipped weights live.")
 

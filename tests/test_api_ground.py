@@ -171,3 +171,16 @@ def test_errors_carry_the_request_id(client: TestClient) -> None:
     assert response.status_code == 422
     assert response.json()["request_id"] == "req-9"
     assert response.json()["field"] == "scene_graph"
+
+
+def test_a_request_may_pick_another_loaded_grounder(client: TestClient, scene_graph_dict: dict) -> None:
+    options = {"grounder": "fixed"}
+    body = _ground(client, scene_graph_dict, "the bag is on the desk", options=options).json()
+    assert body["model"]["name"] == "fixed"
+    np.testing.assert_allclose(body["mixture"]["components"][0]["covariance"], np.eye(3) * 0.01)
+
+
+def test_an_unloaded_grounder_is_422(client: TestClient, scene_graph_dict: dict) -> None:
+    response = _ground(client, scene_graph_dict, "the bag is on the desk", options={"grounder": "lsm"})
+    assert response.status_code == 422
+    assert response.json()["field"] == "options.grounder"

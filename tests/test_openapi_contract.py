@@ -16,7 +16,7 @@ from app.api.app import create_app
 from app.api.auth import digest, new_key
 from app.api.cli import openapi_spec
 from app.api.observability import Metrics
-from app.api.services import build_sensor
+from app.api.services import build_sensors
 from app.settings import Settings
 from app.stores import MemorySessionStore
 
@@ -53,7 +53,7 @@ _settings = Settings(  # type: ignore[call-arg]
     rate_limit_per_s=0,
     api_keys=json.dumps([{"name": "ci-admin", "role": "admin", "sha256": digest(_ADMIN_KEY)}]),
 )
-_app = create_app(_settings, sensor=build_sensor(_settings, Metrics()), store=MemorySessionStore(None))
+_app = create_app(_settings, sensors=build_sensors(_settings, Metrics()), store=MemorySessionStore(None))
 schema = schemathesis.openapi.from_asgi("/openapi.json", _app)
 
 

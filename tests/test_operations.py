@@ -27,7 +27,11 @@ def test_not_ready_before_the_model_is_loaded(settings: Settings) -> None:
 
 def test_models_lists_grounder_and_proposer(client: TestClient) -> None:
     models = client.get("/v1/models").json()["models"]
-    assert [(m["role"], m["name"]) for m in models] == [("grounder", "geometric"), ("proposer", "lexical")]
+    assert [(m["role"], m["name"]) for m in models] == [
+        ("grounder", "geometric"),
+        ("grounder", "fixed"),
+        ("proposer", "lexical"),
+    ]
     assert models[0]["checksum"].startswith("sha256:")
     assert "near_margin" in models[0]["config"]
 

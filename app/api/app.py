@@ -17,8 +17,7 @@ from app.api.limits import BodySizeLimitMiddleware
 from app.api.observability import Metrics, RequestContextMiddleware
 from app.api.routes import ground, health, metrics, models, scene_graphs, sessions
 from app.api.schemas import ObservationBatchJson, PackedArray, SensorModelIn
-from app.api.services import Services, build_sensor
-from app.grounding.sensor import LanguageSensor
+from app.api.services import Sensors, Services, build_sensors
 from app.settings import Settings, get_settings
 from app.stores.base import SessionStore
 
@@ -49,20 +48,20 @@ def openapi_with_raw_bodies(app: FastAPI) -> dict[str, Any]:
 
 
 def create_app(
-    settings: Settings | None = None, sensor: LanguageSensor | None = None, store: SessionStore | None = None
+    settings: Settings | None = None, sensors: Sensors | None = None, store: SessionStore | None = None
 ) -> FastAPI:
-    """Build the service. `sensor` and `store` override what the settings describe (tests, benchmarks)."""
+    """Build the service. `sensors` and `store` override what the settings describe (tests, benchmarks)."""
     settings = settings or get_settings()
-    services = Services(settings=settings, metrics=Metrics(), sensor=sensor, store=store)
+    services = Services(settings=settings, metrics=Metrics(), sensors=sensors, store=store)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         owns_store = services.store is None
         if owns_store:
             services.store = await anyio.to_thread.run_sync(services.open_store)
-        if services.sensor is None:
-            services.sensor = await anyio.to_thread.run_sync(build_sensor, settings, services.metrics)
-        log.info("ready", extra={"grounder": services.sensor.grounder.name, "store": settings.store})
+        if services.sensors is None:
+            services.sensors = await anyio.to_thread.run_sync(build_sensors, settings, services.metrics)
+        log.info("ready", extra={"grounder": services.sensors.default, "store": settings.store})
         try:
             yield
         finally:

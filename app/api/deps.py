@@ -10,9 +10,8 @@ from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from app.api.auth import OPEN_ACCESS, Principal
-from app.api.services import Services
+from app.api.services import Sensors, Services
 from app.errors import InvalidInput, ModelUnavailable, Unauthenticated
-from app.grounding.sensor import LanguageSensor
 from app.settings import Settings
 from app.stores.base import SessionStore
 
@@ -33,12 +32,12 @@ def get_settings(request: Request) -> Settings:
     return get_services(request).settings
 
 
-def get_sensor(request: Request) -> LanguageSensor:
-    sensor = get_services(request).sensor
-    if sensor is None:
-        msg = "the grounding model is still loading"
+def get_sensors(request: Request) -> Sensors:
+    sensors = get_services(request).sensors
+    if sensors is None:
+        msg = "the grounding models are still loading"
         raise ModelUnavailable(msg)
-    return sensor
+    return sensors
 
 
 def get_store(request: Request) -> SessionStore:
@@ -91,6 +90,6 @@ def get_principal(
 
 ServicesDep = Annotated[Services, Depends(get_services)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-SensorDep = Annotated[LanguageSensor, Depends(get_sensor)]
+SensorsDep = Annotated[Sensors, Depends(get_sensors)]
 PrincipalDep = Annotated[Principal, Depends(get_principal)]
 StoreDep = Annotated[SessionStore, Depends(get_store)]

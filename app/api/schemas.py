@@ -45,6 +45,9 @@ class GroundOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     proposer: Literal["builtin"] = Field(default="builtin", description="Which hypothesis proposer to use.")
+    grounder: Literal["lsm", "geometric", "fixed"] | None = Field(
+        default=None, description="Spatial grounder (default: the service's); see GET /v1/models."
+    )
     hypotheses: list[HypothesisIn] | None = Field(
         default=None, min_length=1, max_length=5, description="Skip the proposer: ground these hypotheses."
     )

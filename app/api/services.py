@@ -1,4 +1,4 @@
-"""What the routes need, built once per app: settings, metrics, the language sensor, a worker pool."""
+"""What the routes need, built once per app: settings, metrics, the language sensors, the store, a pool."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from anyio import CapacityLimiter
 
 from app.api.auth import KeyRing, RateLimiter
 from app.api.observability import Metrics
+from app.errors import InvalidInput
 from app.grounding.geometric import FixedGrounder, GeometricGrounder
 from app.grounding.interfaces import Grounder
 from app.grounding.lexical import LexicalProposer
@@ -25,23 +26,39 @@ log = logging.getLogger("vlmap.services")
 T = TypeVar("T")
 
 
-def build_grounder(settings: Settings) -> Grounder:
-    """The spatial grounder named by the settings."""
-    if settings.grounder == "fixed":
-        return FixedGrounder()
-    return GeometricGrounder()
+@dataclass(frozen=True)
+class Sensors:
+    """The language sensors this service offers, one per grounder, all sharing one proposer."""
+
+    by_grounder: dict[str, LanguageSensor]
+    default: str
+
+    @classmethod
+    def of(cls, sensor: LanguageSensor) -> Sensors:
+        return cls({sensor.grounder.name: sensor}, sensor.grounder.name)
+
+    def get(self, grounder: str | None = None) -> LanguageSensor:
+        """The sensor with this grounder (the default one when None)."""
+        name = grounder or self.default
+        if name not in self.by_grounder:
+            msg = f"grounder {name!r} is not loaded in this service; available: {sorted(self.by_grounder)}"
+            raise InvalidInput(msg, field="options.grounder")
+        return self.by_grounder[name]
 
 
-def build_sensor(settings: Settings, metrics: Metrics) -> LanguageSensor:
+def build_sensors(settings: Settings, metrics: Metrics) -> Sensors:
+    """Every grounder the settings allow, with the lexical proposer; the configured one is the default."""
+    grounders: list[Grounder] = [GeometricGrounder(), FixedGrounder()]
     proposer = LexicalProposer(max_hypotheses=settings.max_hypotheses)
-    return LanguageSensor(proposer, build_grounder(settings), observer=metrics.observe_stage)
+    sensors = {g.name: LanguageSensor(proposer, g, observer=metrics.observe_stage) for g in grounders}
+    return Sensors(sensors, settings.grounder)
 
 
 @dataclass
 class Services:
     settings: Settings
     metrics: Metrics
-    sensor: LanguageSensor | None = None
+    sensors: Sensors | None = None
     store: SessionStore | None = None
     limiter: CapacityLimiter = field(init=False)
     keyring: KeyRing = field(init=False)

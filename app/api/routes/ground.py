@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from fastapi import APIRouter
 
-from app.api.deps import PrincipalDep, SensorDep, ServicesDep, SettingsDep
+from app.api.deps import PrincipalDep, SensorsDep, ServicesDep, SettingsDep
 from app.api.errors import error_responses
 from app.api.schemas import (
     ComponentOut,
@@ -35,9 +35,10 @@ router = APIRouter(prefix="/v1", tags=["grounding"])
     responses=error_responses(400, 401, 413, 422, 429, 503),
 )
 async def ground(
-    body: GroundRequest, sensor: SensorDep, settings: SettingsDep, services: ServicesDep, _: PrincipalDep
+    body: GroundRequest, sensors: SensorsDep, settings: SettingsDep, services: ServicesDep, _: PrincipalDep
 ) -> GroundResponse:
     """Ground an utterance in a scene graph: weighted hypotheses and a Gaussian mixture over the target."""
+    sensor = sensors.get(body.options.grounder if body.options else None)
     return await services.run(ground_request, body, sensor, settings)
 
 

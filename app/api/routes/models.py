@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from fastapi import APIRouter
 
-from app.api.deps import PrincipalDep, SensorDep
+from app.api.deps import PrincipalDep, SensorsDep
 from app.api.errors import error_responses
 from app.api.schemas import ModelInfo, ModelsResponse
 
@@ -17,10 +19,16 @@ router = APIRouter(prefix="/v1", tags=["models"])
     response_model=ModelsResponse,
     responses=error_responses(401, 429, 503),
 )
-async def list_models(sensor: SensorDep, _: PrincipalDep) -> ModelsResponse:
-    """Name, version, config and weights checksum of the grounder and the proposer in use."""
-    grounder = sensor.grounder.describe()
-    proposer = {"name": sensor.proposer.name, "version": "1", "config": {}, "checksum": None}
-    return ModelsResponse(
-        models=[ModelInfo(role="grounder", **grounder), ModelInfo(role="proposer", **proposer)]
-    )
+async def list_models(sensors: SensorsDep, _: PrincipalDep) -> ModelsResponse:
+    """Name, version, config and weights checksum of each loaded grounder (default first) and the proposer."""
+    names = [sensors.default, *sorted(n for n in sensors.by_grounder if n != sensors.default)]
+    models = [ModelInfo(role="grounder", **sensors.get(n).grounder.describe()) for n in names]
+    models.append(ModelInfo(role="proposer", **proposer_description(sensors.get().proposer)))
+    return ModelsResponse(models=models)
+
+
+def proposer_description(proposer: object) -> dict[str, Any]:
+    describe = getattr(proposer, "describe", None)
+    if callable(describe):
+        return dict(describe())
+    return {"name": getattr(proposer, "name", "unknown"), "version": "1", "config": {}, "checksum": None}

@@ -14,7 +14,7 @@ from fastapi import APIRouter, Header, Query, Request, Response
 from pydantic import ValidationError
 
 from app.api.auth import Principal
-from app.api.deps import PrincipalDep, SensorDep, ServicesDep, SettingsDep, StoreDep
+from app.api.deps import PrincipalDep, SensorsDep, ServicesDep, SettingsDep, StoreDep
 from app.api.errors import error_responses, field_path
 from app.api.routes.ground import caller_hypotheses, resolve_scene_graph, to_response
 from app.api.schemas import (
@@ -291,10 +291,11 @@ async def post_utterance(
     body: UtteranceIn,
     principal: PrincipalDep,
     store: StoreDep,
-    sensor: SensorDep,
+    sensors: SensorsDep,
     services: ServicesDep,
 ) -> UtteranceOut:
     """Fuse an utterance: ground it in the session's scene graph and add its log-likelihood to every voxel."""
+    sensor = sensors.get(body.options.grounder if body.options else None)
     return await services.run(add_utterance, store, principal, session_id, body, sensor)
 
 
