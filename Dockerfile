@@ -15,6 +15,8 @@ RUN python -m venv .venv \
  && .venv/bin/python -m pip install --quiet -r requirements.lock \
  && .venv/bin/python -m pip install --quiet --no-deps -e .
 
+# The embedded session store logs to var/sessions (VLMAP_DATA_DIR); mount a volume there to keep beliefs.
+RUN mkdir -p var/sessions && chown -R vlmap var
 USER vlmap
 EXPOSE 8000
 HEALTHCHECK --interval=15s --timeout=3s --start-period=60s --retries=3 \

@@ -295,3 +295,10 @@ def test_explicit_grid_bounds(client: TestClient, two_rooms: dict) -> None:
         },
     )
     assert bad.status_code == 422 and bad.json()["field"] == "grid.max_corner"
+
+
+def test_method_not_allowed_names_every_allowed_method(client: TestClient) -> None:
+    response = client.put("/v1/sessions")
+    assert response.status_code == 405
+    assert response.headers["allow"] == "GET, HEAD, POST"
+    assert client.post("/v1/sessions/abc").headers["allow"] == "DELETE, GET, HEAD"
