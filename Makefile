@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: venv serve test lint bench openapi clean
+.PHONY: venv serve test lint bench bench-fleet openapi clean
 
 venv: $(STAMP)
 
@@ -30,8 +30,16 @@ lint: $(STAMP)
 openapi: $(STAMP)
 	$(VENV)/bin/vlmap openapi --out openapi/openapi.json
 
+# Benchmarks print figures (the README's Performance section quotes them); they assert nothing.
 bench: $(STAMP)
 	HF_HUB_OFFLINE=1 $(PY) -m bench.ground_latency
+	HF_HUB_OFFLINE=1 $(PY) -m bench.fusion_kernel
+	HF_HUB_OFFLINE=1 $(PY) -m bench.sessions_e2e
+	$(MAKE) bench-fleet
+
+# 20 robots + 5 dashboards for 60 s on two replicas sharing Redis, then the faults (needs redis-server).
+bench-fleet: $(STAMP)
+	HF_HUB_OFFLINE=1 $(PY) -m bench.fleet
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache

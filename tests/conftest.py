@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -12,8 +13,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.api.app import create_app
+from app.api.launcher import RedisServer
 from app.settings import Settings
-from tests.servers import RedisServer, redis_binary
 
 RESOURCES = Path(__file__).parent / "resources"
 
@@ -50,7 +51,7 @@ def redis_url() -> Iterator[str]:
     if given:
         yield given
         return
-    binary = redis_binary()
+    binary = shutil.which("redis-server")
     if binary is None:
         pytest.skip("redis-server is not installed (apt-get install redis-server)")
     server = RedisServer(binary)

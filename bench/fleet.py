@@ -1,0 +1,310 @@
+"""`make bench-fleet`: a loopback fleet (robots stream batches and utterances, dashboards poll) + faults.
+
+Phase 1 (load): N robots, each with its own session, send 10k-voxel msgpack observation batches at a fixed
+rate and an utterance every few seconds; M dashboards poll the beliefs with ETags. Robots and dashboards
+spread over the replicas the way a load balancer would. Reported: throughput, p50/p99 per route, errors.
+
+Phase 2 (faults), while the fleet keeps streaming:
+  - redis: the Redis server is restarted (AOF, fsync always); requests must fail cleanly (503) and succeed
+    again without restarting the service;
+  - kill: a service process is killed with SIGKILL and started again on its port (the embedded store's
+    log, or Redis, must hold every acknowledged update);
+  - disconnect: a client sends half of a declared body and hangs up.
+Then no acknowledged update may be missing: every batch labels its voxels as the target with a sensor model
+(tp=0.51, fp=0.5) whose increment d = log(0.51/0.5) is far from the clamps, so a voxel's vision log-weight
+must lie between d * (acknowledged hits) and d * (all hits sent).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import os
+import shutil
+import signal
+import socket
+import tempfile
+import time
+from collections import defaultdict
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from app.api.launcher import RedisServer, start_service, wait_ready
+from app.client import AsyncVLMapClient, VLMapClient
+
+TP, FP = 0.51, 0.5
+INCREMENT = math.log(TP / FP)
+SCENE = (
+    Path(__file__).resolve().parent.parent / "tests" / "resources" / "scenes" / "scannet_scene0590_00.json"
+)
+
+
+@dataclass
+class Stats:
+    latencies_ms: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+    status: dict[str, dict[str, int]] = field(default_factory=lambda: defaultdict(lambda: defaultdict(int)))
+
+    def record(self, route: str, started: float, outcome: str) -> None:
+        if outcome == "200":
+            self.latencies_ms[route].append((time.perf_counter() - started) * 1000.0)
+        self.status[route][outcome] += 1
+
+
+@dataclass
+class RobotLog:
+    """What one robot sent and what the service acknowledged."""
+
+    session_id: str
+    replica: int
+    sent: list[np.ndarray] = field(default_factory=list)  # flat voxel indices per batch
+    acked: list[bool] = field(default_factory=list)
+
+
+class Fleet:
+    def __init__(self, urls: list[str], scene: dict[str, Any], args: argparse.Namespace) -> None:
+        self.urls = urls
+        self.scene = scene
+        self.args = args
+        self.stats = Stats()
+        self.robots: list[RobotLog] = []
+        self.stop = asyncio.Event()
+
+    def create_sessions(self) -> None:
+        for i in range(self.args.robots):
+            replica = i % len(self.urls)
+            with VLMapClient(self.urls[replica]) as client:
+                session = client.create_session(
+                    f"robot-{i}", self.scene, target_label="backpack", sensor_model={"tp": TP, "fp": FP}
+                )
+            self.robots.append(RobotLog(session["id"], replica))
+        self.n_voxels = session["grid"]["n_voxels"]
+        self.shape = tuple(session["grid"]["shape"])
+
+    async def _call(self, route: str, coro: Any) -> Any:
+        started = time.perf_counter()
+        try:
+            result = await coro
+        except httpx.TransportError as exc:
+            self.stats.record(route, started, type(exc).__name__)
+            return None
+        except Exception as exc:  # VLMapHTTPError carries the status
+            self.stats.record(route, started, str(getattr(exc, "status", type(exc).__name__)))
+            return None
+        self.stats.record(route, started, "200")
+        return result
+
+    async def robot(self, index: int) -> None:
+        log = self.robots[index]
+        period = 1.0 / self.args.rate
+        rng = np.random.default_rng(self.args.seed + index)
+        async with AsyncVLMapClient(self.urls[log.replica], timeout_s=10.0) as client:
+            step = 0
+            while not self.stop.is_set():
+                tick = time.perf_counter()
+                if step % (self.args.rate * 5) == 0:
+                    await self._call(
+                        "POST /utterances",
+                        client.send_utterance(log.session_id, "my backpack is on the desk"),
+                    )
+                flat = rng.choice(self.n_voxels, size=self.args.voxels, replace=False)
+                ijk = np.stack(np.unravel_index(flat, self.shape), axis=1)
+                log.sent.append(flat)
+                labels = ["backpack"] * len(flat)
+                result = await self._call(
+                    "POST /observations", client.send_observations(log.session_id, voxels=ijk, labels=labels)
+                )
+                log.acked.append(result is not None)
+                step += 1
+                await asyncio.sleep(max(0.0, period - (time.perf_counter() - tick)))
+
+    async def dashboard(self, index: int) -> None:
+        etags: dict[str, str | None] = {}
+        async with AsyncVLMapClient(self.urls[index % len(self.urls)], timeout_s=10.0) as client:
+            while not self.stop.is_set():
+                for log in self.robots:
+                    if self.stop.is_set():
+                        break
+                    result = await self._call(
+                        "GET /belief", client.get_belief(log.session_id, etags.get(log.session_id))
+                    )
+                    if result is not None:
+                        etags[log.session_id] = result[1]
+                    await asyncio.sleep(1.0 / (self.args.poll_rate * len(self.robots)))
+
+    async def run(self, duration_s: float, fault: Any = None) -> None:
+        self.stop.clear()
+        tasks = [asyncio.create_task(self.robot(i)) for i in range(len(self.robots))]
+        tasks += [asyncio.create_task(self.dashboard(i)) for i in range(self.args.dashboards)]
+        if fault is not None:
+            await asyncio.sleep(duration_s / 3)
+            await fault()
+            await asyncio.sleep(duration_s * 2 / 3)
+        else:
+            await asyncio.sleep(duration_s)
+        self.stop.set()
+        await asyncio.gather(*tasks)
+
+    def verify_no_acknowledged_update_lost(self) -> dict[str, int]:
+        """Every acknowledged batch is in the belief; nothing appears that was never sent."""
+        checked = lost = 0
+        for log in self.robots:
+            with VLMapClient(self.urls[log.replica]) as client:
+                vis = client.get_belief_grid(log.session_id, layers=True).vis.astype(np.float64)
+            acked = np.zeros(self.n_voxels)
+            sent = np.zeros(self.n_voxels)
+            for flat, ok in zip(log.sent, log.acked, strict=True):
+                sent[flat] += 1
+                if ok:
+                    acked[flat] += 1
+            tolerance = 1e-4 * (1 + sent)
+            lost += int(np.sum(vis < INCREMENT * acked - tolerance))
+            lost += int(np.sum(vis > INCREMENT * sent + tolerance))
+            checked += int(sum(log.acked))
+        return {"acknowledged_batches": checked, "voxels_inconsistent": lost}
+
+
+def client_disconnects_mid_upload(url: str) -> None:
+    """Declare a 1 MB body, send 1 kB of it, hang up."""
+    host, port = url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=5) as sock:
+        head = (
+            f"POST /v1/sessions/x/observations HTTP/1.1\r\nHost: {host}\r\n"
+            "Content-Type: application/msgpack\r\n"
+            "Content-Length: 1000000\r\n\r\n"
+        )
+        sock.sendall(head.encode() + b"\x00" * 1024)
+
+
+def summarise(stats: Stats) -> dict[str, Any]:
+    out = {}
+    for route, samples in sorted(stats.latencies_ms.items()):
+        arr = np.asarray(samples)
+        out[route] = {
+            "ok": len(arr),
+            "p50_ms": round(float(np.percentile(arr, 50)), 2),
+            "p99_ms": round(float(np.percentile(arr, 99)), 2),
+            "errors": {k: v for k, v in stats.status[route].items() if k != "200"},
+        }
+    return out
+
+
+def print_table(title: str, summary: dict[str, Any], seconds: float) -> None:
+    print(f"\n{title}")
+    print("| route | ok | req/s | p50 (ms) | p99 (ms) | errors |")
+    print("|---|---|---|---|---|---|")
+    for route, row in summary.items():
+        errors = ", ".join(f"{k}: {v}" for k, v in row["errors"].items()) or "0"
+        print(
+            f"| {route} | {row['ok']} | {row['ok'] / seconds:.1f} | {row['p50_ms']} | {row['p99_ms']} "
+            f"| {errors} |"
+        )
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--robots", type=int, default=20)
+    parser.add_argument("--dashboards", type=int, default=5)
+    parser.add_argument("--rate", type=int, default=2, help="batches per second per robot")
+    parser.add_argument("--poll-rate", type=float, default=2.0, help="belief polls per second per dashboard")
+    parser.add_argument("--voxels", type=int, default=10_000, help="voxels per batch")
+    parser.add_argument("--duration", type=float, default=60.0, help="seconds of steady load")
+    parser.add_argument(
+        "--fault-duration", type=float, default=15.0, help="seconds of load around each fault"
+    )
+    parser.add_argument("--replicas", type=int, default=2)
+    parser.add_argument("--store", choices=["redis", "memory"], default="redis")
+    parser.add_argument("--faults", default="redis,kill,disconnect", help="comma list, or empty for none")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path, default=None, help="also write the results here")
+    args = parser.parse_args(argv)
+    faults = [f for f in args.faults.split(",") if f]
+    if args.store == "memory" and args.replicas != 1:
+        parser.error("the embedded store serves one process: use --replicas 1 with --store memory")
+    scene = json.loads(SCENE.read_text())
+    results: dict[str, Any] = {"config": vars(args) | {"json": str(args.json)}}
+    with ExitStack() as stack:
+        env: dict[str, str] = {"VLMAP_RATE_LIMIT_PER_S": "0", "VLMAP_LOG_LEVEL": "WARNING"}
+        redis_server = None
+        if args.store == "redis":
+            binary = shutil.which("redis-server")
+            if binary is None:
+                parser.error("redis-server is not installed")
+            redis_server = RedisServer(binary, appendonly=True)
+            redis_server.start()
+            stack.callback(redis_server.close)
+            env["VLMAP_STORE"] = redis_server.url
+        else:
+            data_dir = stack.enter_context(tempfile.TemporaryDirectory())
+            env["VLMAP_DATA_DIR"] = data_dir
+        procs, urls = [], []
+        for _ in range(args.replicas):
+            proc, url = start_service(env)
+            procs.append(proc)
+            urls.append(url)
+        stack.callback(lambda: [p.kill() for p in procs if p.poll() is None])
+        for proc, url in zip(procs, urls, strict=True):
+            wait_ready(url, proc)
+
+        fleet = Fleet(urls, scene, args)
+        fleet.create_sessions()
+        print(
+            f"{args.robots} robots ({args.rate} batches/s of {args.voxels} voxels each), "
+            f"{args.dashboards} dashboards, {args.replicas} replica(s), store={args.store}, "
+            f"grid of {fleet.n_voxels} voxels; {args.duration:.0f} s"
+        )
+        asyncio.run(fleet.run(args.duration))
+        results["load"] = summarise(fleet.stats)
+        print_table(f"Load ({args.duration:.0f} s)", results["load"], args.duration)
+
+        async def restart_redis() -> None:
+            assert redis_server is not None
+            await asyncio.to_thread(redis_server.stop)
+            await asyncio.sleep(2.0)
+            await asyncio.to_thread(redis_server.start)
+
+        async def kill_service() -> None:
+            victim = len(procs) - 1
+            os.kill(procs[victim].pid, signal.SIGKILL)
+            await asyncio.to_thread(procs[victim].wait)
+            port = int(urls[victim].rsplit(":", 1)[1])
+            procs[victim], _ = start_service(env, port=port)
+            await asyncio.to_thread(wait_ready, urls[victim], procs[victim])
+
+        async def disconnect() -> None:
+            await asyncio.to_thread(client_disconnects_mid_upload, urls[0])
+
+        available = {"redis": restart_redis, "kill": kill_service, "disconnect": disconnect}
+        for name in faults:
+            if name == "redis" and redis_server is None:
+                continue
+            fleet.stats = Stats()
+            asyncio.run(fleet.run(args.fault_duration, available[name]))
+            results[f"fault_{name}"] = summarise(fleet.stats)
+            print_table(
+                f"Fault: {name} ({args.fault_duration:.0f} s around it)",
+                results[f"fault_{name}"],
+                args.fault_duration,
+            )
+        results["consistency"] = fleet.verify_no_acknowledged_update_lost()
+        print(f"\nConsistency after all phases: {results['consistency']}")
+        for url in urls:
+            assert httpx.get(f"{url}/readyz", timeout=5).status_code == 200, (
+                f"{url} is not ready after the faults"
+            )
+        print("Every replica is ready after the faults (none was restarted for the Redis fault).")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+    return results
+
+
+if __name__ == "__main__":
+    main()
