@@ -90,7 +90,8 @@ def main() -> None:
         f"session grid: {n} voxels (0.1 m), embedded store with fsync per batch, loopback, sequential client"
     )
     print(
-        f"POST /observations, 100k-voxel msgpack batch, uint32 label ids (answer includes the summary): {pctl(batch_ms)}"
+        "POST /observations, 100k-voxel msgpack batch, uint32 label ids (the answer carries the summary): "
+        f"{pctl(batch_ms)}"
     )
     print(f"  = {100_000 / (np.mean(batch_ms) / 1000) / 1e6:.1f} M voxel updates/s end to end")
     print(f"GET /belief summary of the 1M-voxel session: {pctl(poll_ms)}")
