@@ -15,6 +15,8 @@ _COMMAND_MODULES = {
     "keys": "app.api.cli",
     "data": "app.data.cli",
     "train": "app.lsm.cli",
+    "sim": "app.sim.cli",
+    "eval": "app.evaluation.cli",
 }
 
 

@@ -1,0 +1,240 @@
+"""The static evaluation's report: Markdown tables (methods x metrics) and PNG calibration plots.
+
+Both read only the metrics dictionary `app.evaluation.static` writes as metrics.json, so a report can be
+redrawn from a saved file.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from app.evaluation.metrics import DEFAULT_MASSES
+
+_NOT_METHODS = ("config", "referent", "run")
+_CALIBRATED_ANEES = 3.0
+
+
+def evaluated_methods(metrics: dict[str, Any]) -> list[str]:
+    """The evaluated methods, in the order they were run."""
+    configured = metrics.get("config", {}).get("methods")
+    if configured:
+        return [m for m in configured if m in metrics]
+    return [k for k, v in metrics.items() if k not in _NOT_METHODS and isinstance(v, dict) and "overall" in v]
+
+
+def _number(value: Any, digits: int) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    if abs(value) >= 1e5:
+        return f"{value:.3g}"
+    return f"{value:.{digits}f}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1) -> list[str]:
+    align = [":--"] * left + ["--:"] * (len(header) - left)
+    lines = ["| " + " | ".join(header) + " |", "| " + " | ".join(align) + " |"]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return lines
+
+
+def _metric_header(with_uniform: bool, with_matched: bool) -> list[str]:
+    header = ["n", "RMSE (m)", "NLL", "ANEES"]
+    if with_matched:
+        header.append("ANEES n")
+    header += [f"cov {m:g}" for m in DEFAULT_MASSES]
+    if with_uniform:
+        header.append("NLL, uniform w")
+    return header
+
+
+def _metric_cells(summary: dict[str, Any], with_uniform: bool, with_matched: bool) -> list[str]:
+    coverage = summary.get("coverage", {})
+    cells = [
+        str(summary.get("n", 0)),
+        _number(summary.get("rmse"), 3),
+        _number(summary.get("nll"), 2),
+        _number(summary.get("anees"), 2),
+    ]
+    if with_matched:
+        cells.append(str(summary.get("anees_n", 0)))
+    cells += [_number(coverage.get(str(m)), 3) for m in DEFAULT_MASSES]
+    if with_uniform:
+        cells.append(_number(summary.get("uniform_weights_nll"), 2))
+    return cells
+
+
+def format_report(metrics: dict[str, Any]) -> str:
+    """Markdown: overall, per relation, per ambiguity (methods side by side), then the proposer's weights."""
+    methods = evaluated_methods(metrics)
+    config = metrics.get("config", {})
+    with_uniform = any("uniform_weights_nll" in metrics[m]["overall"] for m in methods)
+    with_matched = any(metrics[m]["overall"].get("unmatched", 0) for m in methods)
+    lines = ["# Static evaluation", ""]
+    if config:
+        proposer = config.get("proposer", "?")
+        if config.get("proposer_impl") not in (None, proposer):
+            proposer += f" ({config['proposer_impl']})"
+        lines += [
+            f"`{config.get('cases')}`: {config.get('n')} cases, proposer {proposer}, "
+            f"seed {config.get('seed')}, {config.get('hdr_samples')} Monte Carlo draws per mixture HDR.",
+            "",
+        ]
+
+    lines += ["## Overall", ""]
+    header = ["method", *_metric_header(with_uniform, with_matched), "failures"]
+    rows = [
+        [
+            m,
+            *_metric_cells(metrics[m]["overall"], with_uniform, with_matched),
+            str(metrics[m].get("failures", {}).get("count", 0)),
+        ]
+        for m in methods
+    ]
+    lines += [*_table(header, rows), ""]
+
+    for key, title in (("per_relation", "relation"), ("per_ambiguity", "ambiguity")):
+        groups = list(dict.fromkeys(g for m in methods for g in metrics[m].get(key, {})))
+        if not groups:
+            continue
+        lines += [f"## Per {title}", ""]
+        header = [title, "method", *_metric_header(with_uniform, with_matched)]
+        rows = [
+            [group, m, *_metric_cells(metrics[m][key][group], with_uniform, with_matched)]
+            for group in groups
+            for m in methods
+            if group in metrics[m].get(key, {})
+        ]
+        lines += [*_table(header, rows, left=2), ""]
+
+    referent = metrics.get("referent")
+    if referent:
+        lines += ["## Referent: the proposer's weights", ""]
+        header = ["ambiguity", "n", "top-1 accuracy", "true-hypothesis NLL", "absent", "ECE", "hypotheses"]
+        groups = [("all", referent["overall"]), *referent.get("per_ambiguity", {}).items()]
+        rows = [
+            [
+                name,
+                str(s.get("n", 0)),
+                _number(s.get("top1_accuracy"), 3),
+                _number(s.get("true_hypothesis_nll"), 3),
+                str(s.get("absent", 0)),
+                _number(s.get("ece"), 3),
+                _number(s.get("mean_hypotheses"), 2),
+            ]
+            for name, s in groups
+        ]
+        lines += [*_table(header, rows), ""]
+        lines += [
+            "absent: cases whose hypotheses never hold the true anchors (scored -log 1e-6); hypotheses: mean "
+            "number per case.",
+            "",
+        ]
+
+    problems = [
+        f"- {m}: {metrics[m]['failures']['count']} failed cases, e.g. {metrics[m]['failures']['examples'][0]}"
+        for m in methods
+        if metrics[m].get("failures", {}).get("count")
+    ]
+    proposer_failures = metrics.get("run", {}).get("proposer_failures", {})
+    if proposer_failures.get("count"):
+        problems.append(
+            f"- proposer: {proposer_failures['count']} failed cases, e.g. {proposer_failures['examples'][0]}"
+        )
+    if config.get("llm_fallbacks"):
+        problems.append(f"- LLM proposer fell back to the built-in one: {config['llm_fallbacks']}")
+    skipped = metrics.get("run", {}).get("skipped_without_truth")
+    if skipped:
+        problems.append(f"- {skipped} cases without true hypotheses skipped (--proposer gt needs them)")
+    if problems:
+        lines += ["## Failures", "", *problems, ""]
+    return "\n".join(lines)
+
+
+def write_plots(metrics: dict[str, Any], out_dir: Path) -> list[Path]:
+    """anees_per_relation.png, coverage.png and (with a proposer) reliability.png in `out_dir`."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = [_anees_per_relation(metrics, out_dir / "anees_per_relation.png")]
+    written.append(_coverage(metrics, out_dir / "coverage.png"))
+    if metrics.get("referent", {}).get("overall", {}).get("reliability"):
+        written.append(_reliability(metrics["referent"]["overall"], out_dir / "reliability.png"))
+    return written
+
+
+def _anees_per_relation(metrics: dict[str, Any], path: Path) -> Path:
+    """Grouped bars, log scale (overconfident baselines reach the hundreds), the calibrated 3 as a line."""
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    methods = evaluated_methods(metrics)
+    relations = list(dict.fromkeys(r for m in methods for r in metrics[m].get("per_relation", {})))
+    fig = Figure(figsize=(max(6.0, 1.1 * len(relations) + 2.0), 4.0), layout="constrained")
+    ax = fig.add_subplot()
+    width = 0.8 / max(len(methods), 1)
+    x = np.arange(len(relations))
+    for j, m in enumerate(methods):
+        values = [metrics[m]["per_relation"].get(r, {}).get("anees") for r in relations]
+        heights = [math.nan if v is None else v for v in values]
+        ax.bar(x + (j - (len(methods) - 1) / 2) * width, heights, width, label=m)
+    ax.axhline(_CALIBRATED_ANEES, color="black", linestyle="--", linewidth=1, label="calibrated (3)")
+    ax.set_yscale("log")
+    ax.set_xticks(x, relations)
+    ax.set_ylabel("ANEES (log scale)")
+    ax.set_title("Calibration per relation: ANEES (3 = calibrated, above = overconfident)")
+    ax.legend(fontsize="small")
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def _coverage(metrics: dict[str, Any], path: Path) -> Path:
+    """Observed HDR coverage against the nominal mass; a calibrated method lies on the diagonal."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(4.5, 4.5), layout="constrained")
+    ax = fig.add_subplot()
+    ax.plot([0, 1], [0, 1], color="black", linestyle="--", linewidth=1, label="calibrated")
+    for m in evaluated_methods(metrics):
+        coverage = metrics[m]["overall"].get("coverage", {})
+        if coverage:
+            ax.plot(DEFAULT_MASSES, [coverage[str(k)] for k in DEFAULT_MASSES], marker="o", label=m)
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("HDR mass (nominal)")
+    ax.set_ylabel("targets inside (observed)")
+    ax.set_title("Coverage of the mixture's HDR")
+    ax.legend(fontsize="small")
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def _reliability(summary: dict[str, Any], path: Path) -> Path:
+    """Fraction correct per weight bin against the bin's mean weight, with the pairs per bin below."""
+    from matplotlib.figure import Figure
+
+    bins = summary["reliability"]
+    centres = [0.5 * (b["low"] + b["high"]) for b in bins]
+    width = bins[0]["high"] - bins[0]["low"]
+    fig = Figure(figsize=(5.0, 6.0), layout="constrained")
+    top, bottom = fig.subplots(2, 1, height_ratios=[3, 1], sharex=True)
+    top.plot([0, 1], [0, 1], color="black", linestyle="--", linewidth=1, label="calibrated")
+    filled = [b for b in bins if b["n"]]
+    top.bar(
+        [0.5 * (b["low"] + b["high"]) for b in filled],
+        [b["accuracy"] for b in filled],
+        width * 0.9,
+        alpha=0.7,
+        label="fraction correct",
+    )
+    top.plot([b["mean_weight"] for b in filled], [b["accuracy"] for b in filled], "o-", color="C3")
+    top.set_ylim(0, 1)
+    top.set_ylabel("hypothesis holds the true anchors")
+    top.set_title(f"Proposer weights: reliability (ECE {_number(summary.get('ece'), 3)})")
+    top.legend(fontsize="small", loc="upper left")
+    bottom.bar(centres, [b["n"] for b in bins], width * 0.9, color="grey")
+    bottom.set_xlim(0, 1)
+    bottom.set_xlabel("hypothesis weight")
+    bottom.set_ylabel("hypotheses")
+    fig.savefig(path, dpi=120)
+    return path

@@ -1,0 +1,471 @@
+"""`vlmap eval static`: metric aggregation on hand-made cases with known Gaussians, and the CLI end to end."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy.stats import chi2, multivariate_normal
+
+from app.cli import build_parser, main
+from app.data.cases import CaseHypothesis, CaseTarget, GroundingCase, read_cases
+from app.evaluation import cli as eval_cli
+from app.evaluation.metrics import DEFAULT_MASSES, hdr_coverage
+from app.evaluation.static import (
+    DEFAULT_HDR_SAMPLES,
+    GROUNDERS,
+    PROPOSERS,
+    ambiguity_bucket,
+    case_ambiguity,
+    chi2_3_cdf,
+    evaluate_static,
+    expected_calibration_error,
+    mixture_coverage,
+    reliability_bins,
+    true_hypothesis_nll,
+)
+from app.grounding.geometric import FixedGrounder
+from app.grounding.hypotheses import Hypothesis, Proposal, UtteranceParse
+from app.grounding.mixture import Gaussian, GaussianMixture
+from app.grounding.relations import Relation
+from app.scene_graph.model import SceneGraph
+from tests.fake_llm_server import FakeLLMServer, Reply
+
+CASES = Path(__file__).parent / "resources" / "eval" / "cases.jsonl"
+N_FIXTURE_CASES = 25
+COVARIANCE = np.array([[0.20, 0.05, 0.0], [0.05, 0.10, -0.02], [0.0, -0.02, 0.05]])
+
+ROOM = SceneGraph.model_validate(
+    {
+        "regions": [{"id": "r0", "name": "kitchen", "center": [0, 0, 1.5], "size": [10, 10, 3]}],
+        "objects": [
+            {
+                "id": "t1",
+                "label": "table",
+                "center": [1.0, 0.0, 0.4],
+                "size": [1.0, 0.6, 0.8],
+                "region_id": "r0",
+            },
+            {
+                "id": "t2",
+                "label": "table",
+                "center": [-3.0, 2.0, 0.4],
+                "size": [1.2, 0.8, 0.8],
+                "region_id": "r0",
+            },
+            {
+                "id": "s1",
+                "label": "sofa",
+                "center": [3.0, -2.0, 0.4],
+                "size": [2.0, 0.9, 0.8],
+                "region_id": "r0",
+            },
+        ],
+    }
+)
+
+
+def make_case(
+    index: int, target: np.ndarray, anchors: list[str], relation: str, ambiguity: int | None = None
+) -> GroundingCase:
+    meta: dict[str, Any] = {} if ambiguity is None else {"ambiguity": ambiguity}
+    return GroundingCase(
+        case_id=f"case-{index}",
+        scene_graph=ROOM,
+        utterance=f"case {index}: the cup {relation} the {ROOM.object(anchors[0]).label}",
+        target=CaseTarget(label="cup", position=[float(v) for v in target]),
+        hypotheses=[CaseHypothesis(anchor_ids=anchors, relation=Relation(relation))],
+        meta=meta,
+    )
+
+
+class KnownGaussianGrounder:
+    """Answers N(mean_i, COVARIANCE) for case i, with the means chosen by the test."""
+
+    name = "known"
+    version = "1"
+
+    def __init__(self, means: dict[str, np.ndarray]) -> None:
+        self.means = means
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "version": self.version, "config": {}, "checksum": None}
+
+    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
+        return [Gaussian(self.means[utterance], COVARIANCE) for _ in hypotheses]
+
+
+# --- metric pieces --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("count", "bucket"),
+    [(1, "1"), (2, "2"), (3, "3-4"), (4, "3-4"), (5, "5+"), (27, "5+"), (0, "unknown"), (None, "unknown")],
+)
+def test_ambiguity_buckets(count: int | None, bucket: str) -> None:
+    assert ambiguity_bucket(count) == bucket
+
+
+def test_ambiguity_computed_from_the_scene_graph_matches_the_builder() -> None:
+    cases = list(read_cases(CASES))
+    for case in cases:
+        given = case.meta["ambiguity"]
+        computed = case_ambiguity(case.model_copy(update={"meta": {}}))
+        assert computed == given, case.case_id
+    # "between" takes the most over its two anchors: the table is one of two, the sofa alone.
+    between = make_case(0, np.zeros(3), ["t1", "s1"], "between")
+    assert case_ambiguity(between) == 2
+    assert case_ambiguity(make_case(1, np.zeros(3), ["s1"], "on")) == 1
+
+
+def test_chi2_3_cdf_matches_scipy() -> None:
+    xs = np.array([0.0, 0.1, 1.0, 2.366, 3.0, 7.815, 20.0])
+    np.testing.assert_allclose([chi2_3_cdf(x) for x in xs], chi2.cdf(xs, 3), atol=1e-12)
+
+
+def test_single_gaussian_coverage_is_the_chi2_ellipsoid_and_agrees_with_monte_carlo() -> None:
+    mixture = GaussianMixture.from_components([1.0], [Gaussian(np.zeros(3), COVARIANCE)])
+    chol = np.linalg.cholesky(COVARIANCE)
+    rng = np.random.default_rng(3)
+    for m in DEFAULT_MASSES:
+        radius = math.sqrt(chi2.ppf(m, 3))
+        inside = chol @ np.array([0.0, 0.0, 0.97 * radius])  # NEES just below the mass-m quantile
+        outside = chol @ np.array([0.0, 1.03 * radius, 0.0])
+        for point, expected in ((inside, True), (outside, False)):
+            exact = mixture_coverage(mixture, point, rng)
+            assert exact[DEFAULT_MASSES.index(m)] == expected
+            sampled = hdr_coverage(mixture, point.reshape(1, 3), rng, DEFAULT_MASSES, 50_000)[0]
+            np.testing.assert_array_equal(exact, sampled)
+
+
+def test_ece_by_hand() -> None:
+    # Bin [0.9, 1.0]: weights 0.9, 1.0 (mean 0.95), one correct (0.5). Bin [0.2, 0.3): weight 0.2, correct.
+    weights = np.array([0.9, 1.0, 0.2])
+    correct = np.array([True, False, True])
+    counts, confidence, accuracy = reliability_bins(weights, correct)
+    assert counts[9] == 2 and counts[2] == 1 and counts.sum() == 3
+    assert confidence[9] == pytest.approx(0.95) and accuracy[9] == pytest.approx(0.5)
+    expected = (2 / 3) * abs(0.5 - 0.95) + (1 / 3) * abs(1.0 - 0.2)
+    assert expected_calibration_error(weights, correct) == pytest.approx(expected)
+    assert math.isnan(expected_calibration_error(np.array([]), np.array([], dtype=bool)))
+
+
+def test_ece_of_calibrated_weights_is_near_zero_and_of_overconfident_ones_large() -> None:
+    rng = np.random.default_rng(0)
+    weights = rng.uniform(size=50_000)
+    calibrated = rng.uniform(size=weights.size) < weights
+    assert expected_calibration_error(weights, calibrated) < 0.01
+    # Overconfident: the weights are pushed towards 0 and 1 beyond what the outcomes bear out.
+    sharpened = np.where(weights > 0.5, 1.0 - 0.3 * (1.0 - weights), 0.3 * weights)
+    assert expected_calibration_error(sharpened, calibrated) > 0.1
+
+
+def test_true_hypothesis_nll() -> None:
+    weights = np.array([0.7, 0.2, 0.1])
+    assert true_hypothesis_nll(weights, np.array([False, True, False])) == (
+        pytest.approx(-math.log(0.2)),
+        False,
+    )
+    # Two hypotheses with the true anchors (e.g. under two relations): their mass adds up.
+    assert true_hypothesis_nll(weights, np.array([True, False, True]))[0] == pytest.approx(-math.log(0.8))
+    nll, absent = true_hypothesis_nll(weights, np.array([False, False, False]))
+    assert absent and nll == pytest.approx(-math.log(1e-6))
+    assert true_hypothesis_nll(np.array([]), np.array([], dtype=bool)) == (
+        pytest.approx(-math.log(1e-6)),
+        True,
+    )
+
+
+# --- aggregation through evaluate_static -------------------------------------------------------------
+
+
+def test_a_calibrated_grounder_scores_anees_three_nominal_coverage_and_the_reference_nll() -> None:
+    rng = np.random.default_rng(7)
+    n = 2000
+    targets = rng.uniform(-3, 3, size=(n, 3))
+    # y - mu ~ N(0, COVARIANCE): the grounder's Gaussian is exactly as uncertain as it claims.
+    means = targets - rng.multivariate_normal(np.zeros(3), COVARIANCE, size=n)
+    cases = [make_case(i, targets[i], ["t1"], "near", ambiguity=1) for i in range(n)]
+    grounder = KnownGaussianGrounder({c.utterance: means[i] for i, c in enumerate(cases)})
+
+    metrics = evaluate_static(cases, [grounder]).metrics["known"]
+    overall = metrics["overall"]
+    assert overall["n"] == n and overall["anees_n"] == n and overall["unmatched"] == 0
+    assert overall["anees"] == pytest.approx(3.0, abs=0.25)  # std of the mean of chi^2(3): sqrt(6/n) = 0.055
+    for m in DEFAULT_MASSES:
+        assert overall["coverage"][str(m)] == pytest.approx(m, abs=0.035)
+    reference_nll = -np.mean(
+        [multivariate_normal(mu, COVARIANCE).logpdf(y) for mu, y in zip(means, targets, strict=True)]
+    )
+    assert overall["nll"] == pytest.approx(reference_nll, rel=1e-9)
+    assert overall["rmse"] == pytest.approx(math.sqrt(np.mean(np.sum((means - targets) ** 2, axis=1))))
+    assert metrics["failures"]["count"] == 0
+    assert "uniform_weights_nll" not in overall  # only with a proposer
+
+
+def test_fixed_grounder_groups_by_relation_with_hand_computed_errors() -> None:
+    specs = [
+        (np.array([1.0, 0.0, 1.0]), ["t1"], "on"),  # 0.6 m above t1's centre
+        (np.array([1.0, 0.3, 0.8]), ["t1"], "on"),  # 0.5 m
+        (np.array([3.0, -1.0, 0.4]), ["s1"], "near"),  # 1.0 m
+        (np.array([-1.0, 1.0, 0.4]), ["t1", "t2"], "between"),  # at the midpoint
+    ]
+    cases = [make_case(i, y, a, r, ambiguity=1) for i, (y, a, r) in enumerate(specs)]
+    metrics = evaluate_static(cases, [FixedGrounder()]).metrics["fixed"]
+    per_relation = metrics["per_relation"]
+    assert list(per_relation) == ["on", "near", "between"]  # the Relation enum's order
+    assert [per_relation[r]["n"] for r in per_relation] == [2, 1, 1]
+    assert per_relation["on"]["rmse"] == pytest.approx(math.sqrt((0.6**2 + 0.5**2) / 2))
+    assert per_relation["near"]["rmse"] == pytest.approx(1.0)
+    assert per_relation["between"]["rmse"] == pytest.approx(0.0, abs=1e-12)
+    # sigma = 0.1 m: NEES = d^2 / 0.01.
+    assert per_relation["on"]["anees"] == pytest.approx((0.36 + 0.25) / 2 / 0.01)
+    assert per_relation["near"]["coverage"] == {"0.5": 0.0, "0.9": 0.0, "0.95": 0.0}
+    assert per_relation["between"]["coverage"] == {"0.5": 1.0, "0.9": 1.0, "0.95": 1.0}
+    assert metrics["overall"]["n"] == 4 and list(metrics["per_ambiguity"]) == ["1"]
+
+
+class ScriptedProposer:
+    """The true anchor with weight `true_weight`, the other table with the rest; nothing for "sofa" cases."""
+
+    name = "scripted"
+
+    def __init__(self, true_weight: float) -> None:
+        self.true_weight = true_weight
+
+    def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal:
+        parse = UtteranceParse(target="cup", relation=Relation.ON, anchor_phrases=("table",))
+        if "sofa" in utterance:
+            return Proposal(parse, (), grounded=False, reason="no sofa")
+        return Proposal(
+            parse,
+            (
+                Hypothesis(("t1",), Relation.ON, weight=self.true_weight),
+                Hypothesis(("t2",), Relation.ON, weight=1.0 - self.true_weight),
+            ),
+        )
+
+
+def test_referent_metrics_and_uniform_weights_nll_with_a_proposer() -> None:
+    targets = [np.array([1.0, 0.1, 0.9]), np.array([0.9, -0.1, 0.85]), np.array([3.0, -2.0, 0.9])]
+    cases = [
+        make_case(0, targets[0], ["t1"], "on", ambiguity=2),
+        make_case(1, targets[1], ["t1"], "on", ambiguity=2),
+        make_case(2, targets[2], ["s1"], "on", ambiguity=1),  # the proposer finds no anchor
+    ]
+    result = evaluate_static(cases, [FixedGrounder()], ScriptedProposer(true_weight=0.8), seed=1)
+    referent = result.metrics["referent"]
+    assert referent["overall"]["n"] == 3 and referent["overall"]["ungrounded"] == 1
+    assert referent["overall"]["absent"] == 1
+    assert referent["overall"]["top1_accuracy"] == pytest.approx(2 / 3)
+    floor = -math.log(1e-6)
+    assert referent["overall"]["true_hypothesis_nll"] == pytest.approx((2 * -math.log(0.8) + floor) / 3)
+    # Pairs (0.8, correct) x2 and (0.2, wrong) x2: ECE = 0.5 * |1 - 0.8| + 0.5 * |0 - 0.2|.
+    assert referent["overall"]["ece"] == pytest.approx(0.2)
+    assert referent["per_ambiguity"]["2"]["top1_accuracy"] == 1.0
+    assert referent["per_ambiguity"]["1"]["top1_accuracy"] == 0.0
+
+    fixed = result.metrics["fixed"]["overall"]
+    assert fixed["anees_n"] == 2 and fixed["unmatched"] == 1  # the broad prior holds no true anchor
+    centres = [np.array([1.0, 0.0, 0.4]), np.array([-3.0, 2.0, 0.4])]
+    cov = np.eye(3) * 0.01
+
+    def mixture_nll(y: np.ndarray, weights: tuple[float, float]) -> float:
+        return -math.log(
+            sum(w * multivariate_normal(c, cov).pdf(y) for w, c in zip(weights, centres, strict=True))
+        )
+
+    low, high = ROOM.bounds()
+    prior = multivariate_normal(0.5 * (low + high), np.diag(np.maximum(high - low, 0.1) ** 2 / 12.0))
+    nll = [
+        mixture_nll(targets[0], (0.8, 0.2)),
+        mixture_nll(targets[1], (0.8, 0.2)),
+        -prior.logpdf(targets[2]),
+    ]
+    uniform = [mixture_nll(targets[0], (0.5, 0.5)), mixture_nll(targets[1], (0.5, 0.5)), nll[2]]
+    assert fixed["nll"] == pytest.approx(np.mean(nll), rel=1e-6)
+    assert fixed["uniform_weights_nll"] == pytest.approx(np.mean(uniform), rel=1e-6)
+    assert fixed["uniform_weights_nll"] > fixed["nll"]
+    rows = {row["case_id"]: row for row in result.per_case}
+    assert rows["case-0"]["referent"]["top1"] is True
+    assert rows["case-2"]["fixed"]["components"] == 1
+
+
+class MixtureGrounder:
+    """Predicts a whole mixture itself (like LLM-E2E): two components, the heavier one far from the truth."""
+
+    name = "mixture"
+    version = "1"
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "version": self.version, "config": {}, "checksum": None}
+
+    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
+        raise AssertionError("a mixture-predicting grounder is asked for its mixture, not per hypothesis")
+
+    def ground_mixture(self, scene_graph: SceneGraph, utterance: str) -> GaussianMixture:
+        return GaussianMixture.from_components(
+            [0.3, 0.7],
+            [
+                Gaussian(np.array([1.0, 0.0, 1.0]), np.eye(3) * 0.04),
+                Gaussian(np.array([-3.0, 2.0, 1.0]), np.eye(3)),
+            ],
+        )
+
+
+def test_a_mixture_predicting_grounder_is_matched_by_the_nearest_component() -> None:
+    target = np.array([1.2, 0.0, 1.0])
+    case = make_case(0, target, ["t1"], "on", ambiguity=2)
+    gt = evaluate_static([case], [MixtureGrounder()]).metrics["mixture"]["overall"]
+    assert gt["anees"] == pytest.approx(0.2**2 / 0.04)  # the component nearest t1
+    assert gt["rmse"] == pytest.approx(0.2)  # with the true hypothesis given: the matched component
+    builtin = evaluate_static([case], [MixtureGrounder()], ScriptedProposer(0.5)).metrics["mixture"][
+        "overall"
+    ]
+    assert builtin["rmse"] == pytest.approx(float(np.linalg.norm(target - [-3.0, 2.0, 1.0])))  # heaviest
+    assert "uniform_weights_nll" not in builtin
+
+
+class FlakyGrounder(FixedGrounder):
+    name = "flaky"
+
+    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
+        if "case 1:" in utterance:
+            raise RuntimeError("endpoint hiccup")
+        return super().ground(scene_graph, utterance, hypotheses)
+
+
+def test_per_case_failures_are_counted_not_fatal() -> None:
+    cases = [make_case(i, np.array([1.0, 0.0, 0.9]), ["t1"], "on", ambiguity=1) for i in range(3)]
+    metrics = evaluate_static(cases, [FlakyGrounder(), FixedGrounder()]).metrics
+    assert metrics["flaky"]["overall"]["n"] == 2
+    assert metrics["flaky"]["failures"]["count"] == 1
+    assert "case-1: RuntimeError: endpoint hiccup" in metrics["flaky"]["failures"]["examples"][0]
+    assert metrics["fixed"]["overall"]["n"] == 3 and metrics["fixed"]["failures"]["count"] == 0
+
+
+# --- the CLI ------------------------------------------------------------------------------------------
+
+
+def test_cli_choices_match_the_evaluation() -> None:
+    assert eval_cli.PROPOSER_CHOICES == PROPOSERS
+    assert eval_cli.GROUNDER_CHOICES == GROUNDERS
+    args = build_parser().parse_args(["eval", "static", "--cases", "c.jsonl", "--out", "out"])
+    assert args.hdr_samples == DEFAULT_HDR_SAMPLES and args.grounder == "lsm" and args.proposer == "gt"
+
+
+def run_cli(*args: str) -> int:
+    return main(["eval", "static", "--cases", str(CASES), "--no-progress", *args])
+
+
+def is_png(path: Path) -> bool:
+    return path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_gt_with_baselines_writes_metrics_report_and_plots(tmp_path: Path, capsys: Any) -> None:
+    out = tmp_path / "gt"
+    assert run_cli("--grounder", "geometric", "--baselines", "--proposer", "gt", "--out", str(out)) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["config"]["methods"] == ["geometric", "fixed"]
+    assert metrics["config"]["n"] == N_FIXTURE_CASES and metrics["config"]["proposer"] == "gt"
+    for method in ("geometric", "fixed"):
+        overall = metrics[method]["overall"]
+        assert overall["n"] == N_FIXTURE_CASES and metrics[method]["failures"]["count"] == 0
+        assert set(overall["coverage"]) == {"0.5", "0.9", "0.95"}
+        assert overall["anees_n"] == N_FIXTURE_CASES
+        assert set(metrics[method]["per_relation"]) == {r.value for r in Relation}
+        assert list(metrics[method]["per_ambiguity"]) == ["1", "2", "3-4", "5+"]
+        assert sum(g["n"] for g in metrics[method]["per_relation"].values()) == N_FIXTURE_CASES
+    assert "referent" not in metrics
+    # The fixed 0.1 m baseline is the overconfident one.
+    assert metrics["fixed"]["overall"]["anees"] > metrics["geometric"]["overall"]["anees"]
+
+    report = (out / "report.md").read_text()
+    assert "| geometric | 25 |" in report and "| fixed | 25 |" in report and "## Per relation" in report
+    assert report in capsys.readouterr().out
+    assert is_png(out / "anees_per_relation.png") and is_png(out / "coverage.png")
+    assert not (out / "reliability.png").exists()
+    rows = [json.loads(line) for line in (out / "per_case.jsonl").read_text().splitlines()]
+    assert len(rows) == N_FIXTURE_CASES and {"geometric", "fixed"} <= set(rows[0])
+
+
+def test_cli_builtin_proposer_adds_referent_metrics(tmp_path: Path) -> None:
+    out = tmp_path / "builtin"
+    assert (
+        run_cli("--grounder", "fixed", "--proposer", "builtin", "--max-cases", "12", "--out", str(out)) == 0
+    )
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["config"]["n"] == 12 and metrics["config"]["methods"] == ["fixed"]
+    referent = metrics["referent"]
+    assert referent["overall"]["n"] == 12
+    assert 0.0 <= referent["overall"]["top1_accuracy"] <= 1.0
+    assert 0.0 <= referent["overall"]["ece"] <= 1.0
+    assert len(referent["overall"]["reliability"]) == 10
+    assert sum(g["n"] for g in referent["per_ambiguity"].values()) == 12
+    assert "uniform_weights_nll" in metrics["fixed"]["overall"]
+    report = (out / "report.md").read_text()
+    assert "## Referent" in report and "NLL, uniform w" in report
+    assert is_png(out / "reliability.png")
+
+
+def test_cli_lsm_without_weights_fails_clearly(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit) as exc:
+        run_cli("--grounder", "lsm", "--model-dir", str(tmp_path), "--out", str(tmp_path / "out"))
+    message = str(exc.value)
+    assert "no LSM checkpoint" in message and str(tmp_path) in message and "--model-dir" in message
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "choice", [("--proposer", "llm"), ("--grounder", "scaffolded-llm"), ("--grounder", "llm-e2e")]
+)
+def test_cli_llm_without_an_endpoint_fails_clearly(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, choice: tuple[str, str]
+) -> None:
+    for name in ("VLMAP_LLM_URL", "VLMAP_LLM_MODEL", "VLMAP_LLM_API_KEY"):
+        monkeypatch.delenv(name, raising=False)
+    args = ("--grounder", "geometric", *choice) if choice[0] == "--proposer" else choice
+    with pytest.raises(SystemExit) as exc:
+        run_cli(*args, "--out", str(tmp_path / "out"))
+    assert "needs an LLM endpoint" in str(exc.value) and "--llm-url" in str(exc.value)
+
+
+def test_cli_llm_proposer_against_a_local_server(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    cases = [c for c in read_cases(CASES) if c.hypotheses and c.hypotheses[0].relation is Relation.ON][:2]
+    subset = tmp_path / "cases.jsonl"
+    subset.write_text("".join(c.model_dump_json() + "\n" for c in cases))
+    truth = cases[0].hypotheses[0] if cases[0].hypotheses else None
+    assert truth is not None
+    good = {
+        "hypotheses": [
+            {
+                "utterance": cases[0].utterance,
+                "referred_object_id": truth.anchor_ids,
+                "region_id": cases[0].scene_graph.object(truth.anchor_ids[0]).region_id,
+                "confidence": 0.9,
+            }
+        ]
+    }
+    monkeypatch.setenv("VLMAP_LLM_MODEL", "fake-chat-1")
+    with FakeLLMServer() as server:
+        server.script(Reply(content=json.dumps(good)), Reply(content="no JSON here"))
+        out = tmp_path / "out"
+        code = main(
+            [
+                *("eval", "static", "--cases", str(subset), "--proposer", "llm", "--grounder", "geometric"),
+                *("--llm-url", server.base_url, "--out", str(out), "--no-progress"),
+            ]
+        )
+        assert len(server.requests) == 2
+    assert code == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["config"]["llm_fallbacks"] == {"malformed_reply": 1}
+    assert metrics["geometric"]["overall"]["n"] == 2
+    assert metrics["referent"]["overall"]["n"] == 2
+    rows = [json.loads(line) for line in (out / "per_case.jsonl").read_text().splitlines()]
+    assert rows[0]["referent"]["top1"] is True
+    assert rows[0]["referent"]["hypotheses"] == [[list(truth.anchor_ids), "on", 1.0]]
