@@ -23,6 +23,16 @@ class Settings(BaseSettings):
     grounder: Literal["lsm", "geometric", "fixed"] = Field(
         default="geometric", description="Default spatial grounder; requests may pick another loaded one."
     )
+    grounders: list[Literal["lsm", "geometric", "fixed"]] = Field(
+        default=["geometric", "fixed"], description="Grounders to load besides the default one."
+    )
+    llm_url: str | None = Field(
+        default=None,
+        description="OpenAI-compatible endpoint (ending before /chat/completions) for the LLM parts.",
+    )
+    llm_model: str = Field(default="gpt-4o-mini", description="Model name sent to the LLM endpoint.")
+    llm_api_key: str | None = Field(default=None, description="Bearer key for the LLM endpoint.")
+    llm_timeout_s: float = Field(default=20.0, gt=0, description="Per-attempt timeout of LLM calls.")
     model_dir: Path = Field(default=REPO_ROOT / "models", description="Where shipped weights live.")
 
     max_body_bytes: int = Field(

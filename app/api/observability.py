@@ -51,6 +51,13 @@ class Metrics:
             registry=self.registry,
         )
 
+        self.llm_fallbacks = Counter(
+            "vlmap_llm_fallbacks_total",
+            "LLM proposer calls answered by the built-in proposer instead, by reason.",
+            ["reason"],
+            registry=self.registry,
+        )
+
     def observe_stage(self, stage: str, seconds: float) -> None:
         self.inference.labels(stage=stage).observe(seconds)
 

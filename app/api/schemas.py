@@ -44,8 +44,11 @@ class HypothesisIn(BaseModel):
 class GroundOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    proposer: Literal["builtin"] = Field(default="builtin", description="Which hypothesis proposer to use.")
-    grounder: Literal["lsm", "geometric", "fixed"] | None = Field(
+    proposer: Literal["builtin", "llm"] = Field(
+        default="builtin",
+        description="Hypothesis proposer: built-in (offline) or the configured LLM endpoint.",
+    )
+    grounder: Literal["lsm", "geometric", "fixed", "scaffolded-llm", "llm-e2e"] | None = Field(
         default=None, description="Spatial grounder (default: the service's); see GET /v1/models."
     )
     hypotheses: list[HypothesisIn] | None = Field(

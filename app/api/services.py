@@ -15,9 +15,9 @@ from app.api.auth import KeyRing, RateLimiter
 from app.api.observability import Metrics
 from app.errors import InvalidInput
 from app.grounding.geometric import FixedGrounder, GeometricGrounder
-from app.grounding.interfaces import Grounder
+from app.grounding.interfaces import Grounder, HypothesisProposer
 from app.grounding.lexical import LexicalProposer
-from app.grounding.sensor import LanguageSensor
+from app.grounding.sensor import LanguageSensor, StageObserver
 from app.settings import Settings
 from app.stores import open_store
 from app.stores.base import SessionStore
@@ -28,30 +28,63 @@ T = TypeVar("T")
 
 @dataclass(frozen=True)
 class Sensors:
-    """The language sensors this service offers, one per grounder, all sharing one proposer."""
+    """The grounders and proposers this service loaded; each request picks one of each, or the defaults."""
 
-    by_grounder: dict[str, LanguageSensor]
-    default: str
+    grounders: dict[str, Grounder]
+    proposers: dict[str, HypothesisProposer]
+    default: str  # grounder
+    default_proposer: str = "builtin"
+    observer: StageObserver | None = None
 
-    @classmethod
-    def of(cls, sensor: LanguageSensor) -> Sensors:
-        return cls({sensor.grounder.name: sensor}, sensor.grounder.name)
+    def get(self, grounder: str | None = None, proposer: str | None = None) -> LanguageSensor:
+        """The language sensor made of these (loaded) parts."""
+        return LanguageSensor(
+            _pick(self.proposers, proposer or self.default_proposer, "options.proposer"),
+            _pick(self.grounders, grounder or self.default, "options.grounder"),
+            observer=self.observer,
+        )
 
-    def get(self, grounder: str | None = None) -> LanguageSensor:
-        """The sensor with this grounder (the default one when None)."""
-        name = grounder or self.default
-        if name not in self.by_grounder:
-            msg = f"grounder {name!r} is not loaded in this service; available: {sorted(self.by_grounder)}"
-            raise InvalidInput(msg, field="options.grounder")
-        return self.by_grounder[name]
+
+def _pick(loaded: dict[str, Any], name: str, field: str) -> Any:
+    if name not in loaded:
+        kind = field.split(".")[-1]
+        msg = f"{kind} {name!r} is not loaded in this service; available: {sorted(loaded)}"
+        raise InvalidInput(msg, field=field)
+    return loaded[name]
 
 
 def build_sensors(settings: Settings, metrics: Metrics) -> Sensors:
-    """Every grounder the settings allow, with the lexical proposer; the configured one is the default."""
-    grounders: list[Grounder] = [GeometricGrounder(), FixedGrounder()]
-    proposer = LexicalProposer(max_hypotheses=settings.max_hypotheses)
-    sensors = {g.name: LanguageSensor(proposer, g, observer=metrics.observe_stage) for g in grounders}
-    return Sensors(sensors, settings.grounder)
+    """The grounders named in `settings.grounders`, the built-in proposer and, with an endpoint, the LLM's."""
+    grounders: dict[str, Grounder] = {}
+    for name in dict.fromkeys([settings.grounder, *settings.grounders]):
+        if name == "geometric":
+            grounders[name] = GeometricGrounder()
+        elif name == "fixed":
+            grounders[name] = FixedGrounder()
+        elif name == "lsm":
+            from app.lsm.grounder import LSMGrounder
+
+            grounders[name] = LSMGrounder.load(settings.model_dir / "lsm")
+    builtin = LexicalProposer(max_hypotheses=settings.max_hypotheses)
+    proposers: dict[str, HypothesisProposer] = {"builtin": builtin}
+    if settings.llm_url:
+        from app.llm.baselines import LLMEndToEndGrounder, ScaffoldedLLMGrounder
+        from app.llm.client import ChatClient, LLMEndpoint
+        from app.llm.proposer import LLMProposer
+
+        endpoint = LLMEndpoint(
+            settings.llm_url, settings.llm_model, settings.llm_api_key, timeout_s=settings.llm_timeout_s
+        )
+        client = ChatClient(endpoint)
+        proposers["llm"] = LLMProposer(
+            client,
+            builtin,
+            max_hypotheses=settings.max_hypotheses,
+            on_fallback=lambda reason: metrics.llm_fallbacks.labels(reason=reason).inc(),
+        )
+        grounders["scaffolded-llm"] = ScaffoldedLLMGrounder(client)
+        grounders["llm-e2e"] = LLMEndToEndGrounder(client)
+    return Sensors(grounders, proposers, settings.grounder, observer=metrics.observe_stage)
 
 
 @dataclass

@@ -38,7 +38,8 @@ async def ground(
     body: GroundRequest, sensors: SensorsDep, settings: SettingsDep, services: ServicesDep, _: PrincipalDep
 ) -> GroundResponse:
     """Ground an utterance in a scene graph: weighted hypotheses and a Gaussian mixture over the target."""
-    sensor = sensors.get(body.options.grounder if body.options else None)
+    options = body.options or GroundOptions()
+    sensor = sensors.get(options.grounder, options.proposer)
     return await services.run(ground_request, body, sensor, settings)
 
 

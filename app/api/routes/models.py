@@ -21,9 +21,9 @@ router = APIRouter(prefix="/v1", tags=["models"])
 )
 async def list_models(sensors: SensorsDep, _: PrincipalDep) -> ModelsResponse:
     """Name, version, config and weights checksum of each loaded grounder (default first) and the proposer."""
-    names = [sensors.default, *sorted(n for n in sensors.by_grounder if n != sensors.default)]
-    models = [ModelInfo(role="grounder", **sensors.get(n).grounder.describe()) for n in names]
-    models.append(ModelInfo(role="proposer", **proposer_description(sensors.get().proposer)))
+    names = [sensors.default, *sorted(n for n in sensors.grounders if n != sensors.default)]
+    models = [ModelInfo(role="grounder", **sensors.grounders[n].describe()) for n in names]
+    models += [ModelInfo(role="proposer", **proposer_description(p)) for p in sensors.proposers.values()]
     return ModelsResponse(models=models)
 
 

@@ -22,6 +22,7 @@ from app.api.schemas import (
     BeliefOut,
     GridOut,
     GridSpec,
+    GroundOptions,
     ObservationBatchJson,
     ObservationOut,
     PosteriorSummaryOut,
@@ -295,7 +296,8 @@ async def post_utterance(
     services: ServicesDep,
 ) -> UtteranceOut:
     """Fuse an utterance: ground it in the session's scene graph and add its log-likelihood to every voxel."""
-    sensor = sensors.get(body.options.grounder if body.options else None)
+    options = body.options or GroundOptions()
+    sensor = sensors.get(options.grounder, options.proposer)
     return await services.run(add_utterance, store, principal, session_id, body, sensor)
 
 
