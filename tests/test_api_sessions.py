@@ -302,3 +302,18 @@ def test_method_not_allowed_names_every_allowed_method(client: TestClient) -> No
     assert response.status_code == 405
     assert response.headers["allow"] == "GET, HEAD, POST"
     assert client.post("/v1/sessions/abc").headers["allow"] == "DELETE, GET, HEAD"
+
+
+def test_idle_sessions_expire_and_are_purged(two_rooms: dict, settings: Any) -> None:
+    import time
+
+    from app.api.app import create_app
+
+    with TestClient(create_app(settings.model_copy(update={"session_ttl_s": 0.4}))) as client:
+        sid = _create(client, two_rooms, target_label="backpack")["id"]
+        assert client.get(f"/v1/sessions/{sid}").status_code == 200
+        time.sleep(1.2)  # three TTLs: the purge task (every TTL/2) has run several times
+        assert client.get(f"/v1/sessions/{sid}").status_code == 404
+        assert client.get("/v1/sessions").json()["sessions"] == []
+        store = client.app.state.services.store  # type: ignore[attr-defined]
+        assert store.purge_expired() == 0  # the background task already freed it

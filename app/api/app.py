@@ -7,6 +7,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
+import anyio
 import anyio.to_thread
 from fastapi import Depends, FastAPI
 
@@ -18,6 +19,7 @@ from app.api.observability import Metrics, RequestContextMiddleware
 from app.api.routes import ground, health, metrics, models, scene_graphs, sessions
 from app.api.schemas import ObservationBatchJson, PackedArray, SensorModelIn
 from app.api.services import Sensors, Services, build_sensors
+from app.errors import VLMapError
 from app.settings import Settings, get_settings
 from app.stores.base import SessionStore
 
@@ -47,6 +49,21 @@ def openapi_with_raw_bodies(app: FastAPI) -> dict[str, Any]:
     return app.openapi_schema
 
 
+async def purge_expired_sessions(services: Services) -> None:
+    """Free idle sessions' memory now and then (they read as deleted from the moment they expire)."""
+    interval = min(60.0, services.settings.session_ttl_s / 2)
+    while True:
+        await anyio.sleep(interval)
+        if services.store is not None:
+            try:
+                purged = await services.run(services.store.purge_expired)
+            except VLMapError as exc:  # a store outage: the next round tries again
+                log.warning("session purge failed", extra={"error": str(exc)})
+                continue
+            if purged:
+                log.info("purged expired sessions", extra={"sessions": purged})
+
+
 def create_app(
     settings: Settings | None = None, sensors: Sensors | None = None, store: SessionStore | None = None
 ) -> FastAPI:
@@ -62,12 +79,15 @@ def create_app(
         if services.sensors is None:
             services.sensors = await anyio.to_thread.run_sync(build_sensors, settings, services.metrics)
         log.info("ready", extra={"grounder": services.sensors.default, "store": settings.store})
-        try:
-            yield
-        finally:
-            if owns_store and services.store is not None:
-                services.store.close()
-                services.store = None
+        async with anyio.create_task_group() as tasks:
+            tasks.start_soon(purge_expired_sessions, services)
+            try:
+                yield
+            finally:
+                tasks.cancel_scope.cancel()
+                if owns_store and services.store is not None:
+                    services.store.close()
+                    services.store = None
 
     app = FastAPI(
         title="VL-Map",
