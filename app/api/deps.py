@@ -10,7 +10,7 @@ from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from app.api.auth import OPEN_ACCESS, Principal
-from app.api.services import Sensors, Services
+from app.api.services import Sensors, Services, SummaryCache
 from app.errors import InvalidInput, ModelUnavailable, Unauthenticated
 from app.settings import Settings
 from app.stores.base import SessionStore
@@ -70,6 +70,10 @@ def reject_unknown_query(request: Request) -> None:
             raise InvalidInput(msg, field=name)
 
 
+def get_summaries(request: Request) -> SummaryCache:
+    return get_services(request).summaries
+
+
 def get_principal(
     request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ) -> Principal:
@@ -93,3 +97,4 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 SensorsDep = Annotated[Sensors, Depends(get_sensors)]
 PrincipalDep = Annotated[Principal, Depends(get_principal)]
 StoreDep = Annotated[SessionStore, Depends(get_store)]
+SummariesDep = Annotated[SummaryCache, Depends(get_summaries)]

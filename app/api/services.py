@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
@@ -87,12 +89,38 @@ def build_sensors(settings: Settings, metrics: Metrics) -> Sensors:
     return Sensors(grounders, proposers, settings.grounder, observer=metrics.observe_stage)
 
 
+class SummaryCache:
+    """Belief summaries by (session, version, top_k): an unchanged belief is not summarised twice.
+
+    Versions are global (the store's), so entries stay right across replicas; an update makes a new key.
+    """
+
+    def __init__(self, maxsize: int = 1024) -> None:
+        self.maxsize = maxsize
+        self._items: OrderedDict[tuple[str, int, int], Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: tuple[str, int, int]) -> Any | None:
+        with self._lock:
+            value = self._items.get(key)
+            if value is not None:
+                self._items.move_to_end(key)
+            return value
+
+    def put(self, key: tuple[str, int, int], value: Any) -> None:
+        with self._lock:
+            self._items[key] = value
+            while len(self._items) > self.maxsize:
+                self._items.popitem(last=False)
+
+
 @dataclass
 class Services:
     settings: Settings
     metrics: Metrics
     sensors: Sensors | None = None
     store: SessionStore | None = None
+    summaries: SummaryCache = field(default_factory=SummaryCache)
     limiter: CapacityLimiter = field(init=False)
     keyring: KeyRing = field(init=False)
     rate_limiter: RateLimiter = field(init=False)

@@ -33,10 +33,11 @@ from app.api.schemas import (
     UtteranceIn,
     UtteranceOut,
 )
+from app.api.services import SummaryCache
 from app.api.wire import MSGPACK_TYPES, ObservationBatch, check_batch_size, decode_msgpack_batch, pack_array
 from app.belief.grid import VoxelGrid
 from app.belief.session import SensorModel, SessionInfo, check_target_label, new_session
-from app.errors import InvalidInput, LimitExceeded, UnsupportedMediaType
+from app.errors import InvalidInput, LimitExceeded, StoreUnavailable, UnsupportedMediaType
 from app.grounding.sensor import LanguageSensor
 from app.settings import Settings
 from app.stores.base import SessionStore
@@ -96,21 +97,29 @@ def session_out(info: SessionInfo) -> SessionOut:
     )
 
 
-def belief_out(store: SessionStore, session_id: str, top_k: int = 5) -> tuple[BeliefOut, str]:
-    """The posterior summary and its ETag; the version is read on both sides so the two agree."""
+def belief_out(
+    store: SessionStore, cache: SummaryCache, session_id: str, top_k: int = 5, info: SessionInfo | None = None
+) -> BeliefOut:
+    """The posterior summary at the current version (cached per version; read on both sides of the sum)."""
+    before = info or store.info(session_id)
     for _ in range(3):
-        before = store.info(session_id)
+        cached = cache.get((session_id, before.version, top_k))
+        if cached is not None:
+            return cached  # type: ignore[no-any-return]
         summary = store.summary(session_id, top_k=top_k)
         after = store.info(session_id)
         if before.version == after.version:
-            break
-    body = BeliefOut(
-        session_id=session_id,
-        version=after.version,
-        target_label=after.target_label or None,
-        summary=PosteriorSummaryOut.model_validate(summary.to_dict()),
-    )
-    return body, etag(after.version)
+            body = BeliefOut(
+                session_id=session_id,
+                version=after.version,
+                target_label=after.target_label or None,
+                summary=PosteriorSummaryOut.model_validate(summary.to_dict()),
+            )
+            cache.put((session_id, after.version, top_k), body)
+            return body
+        before = after
+    msg = f"session {session_id} changes faster than it can be summarised; retry"
+    raise StoreUnavailable(msg)
 
 
 def names_a_class(target: str, label_map: dict[int, str]) -> bool:
@@ -268,7 +277,12 @@ async def put_scene_graph(
 
 
 def add_utterance(
-    store: SessionStore, principal: Principal, session_id: str, body: UtteranceIn, sensor: LanguageSensor
+    store: SessionStore,
+    cache: SummaryCache,
+    principal: Principal,
+    session_id: str,
+    body: UtteranceIn,
+    sensor: LanguageSensor,
 ) -> UtteranceOut:
     _writable(store, principal, session_id)
     session = store.get(session_id)
@@ -277,7 +291,7 @@ def add_utterance(
     target = result.proposal.parse.target
     if not session.target_label and target and names_a_class(target, session.label_map):
         store.set_target_label(session_id, target)
-    belief, _ = belief_out(store, session_id)
+    belief = belief_out(store, cache, session_id)
     return UtteranceOut(grounding=to_response(result, sensor, None), belief=belief)
 
 
@@ -298,7 +312,7 @@ async def post_utterance(
     """Fuse an utterance: ground it in the session's scene graph and add its log-likelihood to every voxel."""
     options = body.options or GroundOptions()
     sensor = sensors.get(options.grounder, options.proposer)
-    return await services.run(add_utterance, store, principal, session_id, body, sensor)
+    return await services.run(add_utterance, store, services.summaries, principal, session_id, body, sensor)
 
 
 def decode_json_batch(raw: bytes, max_voxels: int) -> ObservationBatch:
@@ -328,7 +342,7 @@ def decode_json_batch(raw: bytes, max_voxels: int) -> ObservationBatch:
 
 
 def add_observations(
-    store: SessionStore, principal: Principal, session_id: str, batch: ObservationBatch
+    store: SessionStore, cache: SummaryCache, principal: Principal, session_id: str, batch: ObservationBatch
 ) -> ObservationOut:
     """Map voxels to flat indices (out-of-grid ones counted, not fatal), then fuse the batch."""
     info = _writable(store, principal, session_id)
@@ -349,7 +363,7 @@ def add_observations(
         result = store.apply_observations(
             session_id, batch.labels[keep], points=points, flat_idx=flat_idx, tp=batch.tp, fp=batch.fp
         )
-    belief, _ = belief_out(store, session_id)
+    belief = belief_out(store, cache, session_id)
     return ObservationOut(
         version=result.version,
         stamp=batch.stamp,
@@ -384,10 +398,11 @@ async def post_observations(
     else:
         msg = f"unsupported content type {content_type!r}: send application/json or application/msgpack"
         raise UnsupportedMediaType(msg, field="content-type")
-    return await services.run(add_observations, store, principal, session_id, batch)
+    return await services.run(add_observations, store, services.summaries, principal, session_id, batch)
 
 
-def belief_grid(store: SessionStore, info: SessionInfo, layers: bool) -> bytes:
+def belief_grid(store: SessionStore, info: SessionInfo, layers: bool) -> tuple[bytes, int]:
+    """The whole posterior (and layers) as msgpack, with the version it belongs to."""
     state = store.read_layers(info.id)
     payload = {
         "session_id": info.id,
@@ -398,11 +413,12 @@ def belief_grid(store: SessionStore, info: SessionInfo, layers: bool) -> bytes:
     if layers:
         payload["lang"] = pack_array(state.lang)
         payload["vis"] = pack_array(state.vis)
-    return msgpack.packb(payload, use_bin_type=True)
+    return msgpack.packb(payload, use_bin_type=True), state.version
 
 
 def read_belief(
     store: SessionStore,
+    cache: SummaryCache,
     principal: Principal,
     session_id: str,
     fmt: str,
@@ -415,11 +431,12 @@ def read_belief(
     if if_none_match is not None and tag in [t.strip() for t in if_none_match.split(",")]:
         return Response(status_code=304, headers={"ETag": tag})
     if fmt == "grid":
-        data = belief_grid(store, info, layers)
-        version = msgpack.unpackb(data, raw=False)["version"]  # the layers may be newer than `info`
+        data, version = belief_grid(store, info, layers)  # the layers may be newer than `info`
         return Response(data, media_type="application/msgpack", headers={"ETag": etag(version)})
-    body, tag = belief_out(store, session_id, top_k)
-    return Response(body.model_dump_json(), media_type="application/json", headers={"ETag": tag})
+    body = belief_out(store, cache, session_id, top_k, info)
+    return Response(
+        body.model_dump_json(), media_type="application/json", headers={"ETag": etag(body.version)}
+    )
 
 
 @router.get(
@@ -451,4 +468,6 @@ async def get_belief(
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
     """The fused posterior: summary (MAP, top voxels, moments, entropy, mass per object) or the whole grid."""
-    return await services.run(read_belief, store, principal, session_id, format, layers, top_k, if_none_match)  # type: ignore[return-value]
+    return await services.run(
+        read_belief, store, services.summaries, principal, session_id, format, layers, top_k, if_none_match
+    )  # type: ignore[return-value]
