@@ -1,0 +1,528 @@
+"""Closed-loop episodes against a running VL-Map service: one simulated robot, one session per method.
+
+Identical episodes. For each episode the runner computes ONE seeded trajectory (`app.sim.policy`) and ONE
+seeded stream of noisy camera frames (`Camera` + `LabelNoise`) before any request is made, and sends exactly
+these frames to one session per method, so methods differ only in the utterance's language likelihood. The
+random streams of an episode are seeded by (seed, crc32(episode id)): an episode's frames do not depend on
+which other episodes run, nor in which order.
+
+Per episode and method (`run_method`):
+
+1. POST /v1/sessions: the episode's scene graph without the target, the grid (voxel size and margin; the
+   session's grid must equal `Episode.service_grid`, else the run stops), the target class, the sensor model
+   (tp, fp of the label noise) and a label map (the world's classes, "free" and "unknown");
+2. language methods: POST .../utterances with the method's options (`METHOD_OPTIONS`: the grounder, and
+   for scaffolded-llm the LLM proposer); vision-only sends no utterance;
+3. one msgpack observation batch per frame: the observed voxels' (i, j, k) and their noisy label ids, free
+   voxels labelled "free". Every answer carries the posterior summary, whose MAP voxel gives the argmax
+   distance;
+4. at the checkpoints (step 0 = after the utterance, then `n_checkpoints` evenly spaced steps, the last one
+   included) the whole posterior is read (GET .../belief?format=grid) for the target mass: reading the
+   1-4 MB grid after every step would cost more than the step itself;
+5. DELETE the session.
+
+Skipped episodes (counted by reason, never run): too little free floor for the robot (`min_free_floor_m2`),
+a target with no voxel on the service's grid, a grid beyond the voxel limit, or no utterance while a
+language method is compared.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+import zlib
+from collections import Counter, defaultdict
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_VOXEL_SIZE_M, VoxelGrid
+from app.client import VLMapClient
+from app.errors import LimitExceeded
+from app.sim.camera import Camera, CameraConfig
+from app.sim.metrics import EpisodeOutcome, box_distance, target_mass
+from app.sim.noise import UNKNOWN_LABEL, LabelNoise
+from app.sim.policy import PolicyConfig, trajectory
+from app.sim.scenes import Episode
+from app.sim.world import FREE_LABEL
+
+log = logging.getLogger("vlmap.sim")
+
+#: Method name -> the options its utterance is sent with (None: no utterance). LSM, geometric and fixed use
+#: the built-in proposer; Scaffolded-LLM asks the LLM for the hypotheses and their Gaussians, LLM-E2E for
+#: the whole mixture at once (the reference's foundation-model baselines).
+METHOD_OPTIONS: dict[str, dict[str, str] | None] = {
+    "vision-only": None,
+    "lsm": {"grounder": "lsm"},
+    "geometric": {"grounder": "geometric"},
+    "fixed": {"grounder": "fixed"},
+    "scaffolded-llm": {"grounder": "scaffolded-llm", "proposer": "llm"},
+    "llm-e2e": {"grounder": "llm-e2e"},
+}
+#: Methods that need a service started with an LLM endpoint (VLMAP_LLM_URL).
+LLM_METHODS = ("scaffolded-llm", "llm-e2e")
+DEFAULT_METHODS = ("vision-only", "lsm", "geometric", "fixed")
+
+
+class SimError(Exception):
+    """The simulation cannot run as asked (methods unavailable, a service that disagrees on the grid)."""
+
+
+class EpisodeSkipped(Exception):
+    """An episode unfit for the simulation; `reason` is a short key for the skip counts."""
+
+    def __init__(self, reason: str, detail: str = "") -> None:
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+
+
+def check_methods(methods: Sequence[str]) -> tuple[str, ...]:
+    """The methods, validated and deduplicated in order; SimError names what is unknown or unavailable."""
+    out = tuple(dict.fromkeys(methods))
+    if not out:
+        msg = "give at least one method"
+        raise SimError(msg)
+    for method in out:
+        if method not in METHOD_OPTIONS:
+            msg = f"unknown method {method!r}; choose from {list(METHOD_OPTIONS)}"
+            raise SimError(msg)
+    return out
+
+
+def needs_utterance(methods: Sequence[str]) -> bool:
+    return any(METHOD_OPTIONS[m] is not None for m in methods)
+
+
+def needed_parts(methods: Sequence[str]) -> tuple[set[str], set[str]]:
+    """(grounders, proposers other than the built-in one) that the methods' utterances need."""
+    options = [METHOD_OPTIONS[m] or {} for m in methods]
+    grounders = {o["grounder"] for o in options if "grounder" in o}
+    return grounders, {o["proposer"] for o in options if "proposer" in o}
+
+
+def load_episodes(path: str | Path, source: str | None = None, seed: int = 0) -> list[Episode]:
+    """Every episode a scenes path holds, in a seeded random order; only those of `source` when given.
+
+    - a folder: VLA-3D scenes (one episode per target candidate, no utterance);
+    - a JSONL file of grounding cases (`app.data.cases`; lines with "case_id" and "utterance"): one episode
+      per case, its utterance included;
+    - another JSONL file: raw ScanNet or AI2-THOR layouts (one episode per target candidate, no utterance).
+      Language methods need utterances: build grounding cases from the layouts (`vlmap data build`).
+    """
+    from app.sim.scenes import episodes_from_cases, load_layout_scenes, load_vla3d_scenes
+
+    path = Path(path)
+    if path.is_dir():
+        episodes = [s.episode(t) for s in load_vla3d_scenes(path) for t in s.candidate_target_ids]
+    else:
+        with path.open(encoding="utf-8") as fh:
+            first = next((line for line in fh if line.strip()), None)
+        if first is None:
+            msg = f"{path} holds nothing"
+            raise SimError(msg)
+        head = json.loads(first)
+        if "case_id" in head and "utterance" in head:
+            episodes = list(episodes_from_cases(path))
+        else:
+            episodes = [s.episode(t) for s in load_layout_scenes(path) for t in s.candidate_target_ids]
+    if source is not None:
+        episodes = [e for e in episodes if e.source == source]
+    order = np.random.default_rng(seed).permutation(len(episodes))
+    return [episodes[k] for k in order]
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything that shapes an episode's frames and the checkpoints, shared by all methods."""
+
+    n_steps: int = 100
+    seed: int = 0
+    voxel_size: float = DEFAULT_VOXEL_SIZE_M
+    margin: float = DEFAULT_MARGIN_M
+    noise: LabelNoise = field(default_factory=LabelNoise)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    min_free_floor_m2: float = 2.0
+    n_checkpoints: int = 20
+
+    def __post_init__(self) -> None:
+        if self.n_steps < 1 or self.n_checkpoints < 1:
+            msg = f"need n_steps >= 1 and n_checkpoints >= 1, got {self.n_steps} and {self.n_checkpoints}"
+            raise SimError(msg)
+
+    @property
+    def checkpoints(self) -> tuple[int, ...]:
+        """Steps after which the posterior is read: 0, then n_checkpoints evenly spaced up to n_steps."""
+        k = np.arange(self.n_checkpoints + 1)
+        return tuple(sorted({int(s) for s in np.rint(k * self.n_steps / self.n_checkpoints)}))
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera frame as the service receives it."""
+
+    voxels: np.ndarray  # (M, 3) int32 voxel indices of the service's grid
+    label_ids: np.ndarray  # (M,) uint32 noisy labels, ids of `PreparedEpisode.label_map`
+    sees_target: bool  # a ray stopped on one of the target's voxels
+
+
+@dataclass(frozen=True)
+class PreparedEpisode:
+    """An episode with its frames computed, ready to be sent to any number of sessions."""
+
+    episode: Episode
+    grid: VoxelGrid
+    target_flat: np.ndarray  # (n_t,) the target's voxels on the grid
+    label_map: dict[int, str]
+    frames: tuple[Frame, ...]
+    free_floor_m2: float
+    seconds: dict[str, float]  # world, camera (ray casts), noise
+
+    @property
+    def target_seen(self) -> bool:
+        return any(f.sees_target for f in self.frames)
+
+    @property
+    def first_seen_step(self) -> int | None:
+        """1-based step of the first frame that saw the target."""
+        return next((t for t, f in enumerate(self.frames, start=1) if f.sees_target), None)
+
+
+def episode_rngs(seed: int, episode_id: str) -> tuple[np.random.Generator, np.random.Generator]:
+    """(trajectory, label noise) generators of an episode: independent of the other episodes."""
+    trajectory_seed, noise_seed = np.random.SeedSequence([seed, zlib.crc32(episode_id.encode())]).spawn(2)
+    return np.random.default_rng(trajectory_seed), np.random.default_rng(noise_seed)
+
+
+def prepare_episode(
+    episode: Episode, config: SimConfig, camera: Camera | None = None, require_utterance: bool = False
+) -> PreparedEpisode:
+    """Build the world on the service's grid and compute the episode's frames; EpisodeSkipped if unfit."""
+    if require_utterance and not episode.utterance:
+        raise EpisodeSkipped("no_utterance", episode.episode_id)
+    started = time.perf_counter()
+    try:
+        grid = episode.service_grid(voxel_size=config.voxel_size, margin=config.margin)
+    except LimitExceeded as exc:
+        raise EpisodeSkipped("grid_too_large", str(exc)) from None
+    world = episode.world(grid)
+    target_flat = world.object_voxels(episode.target.id)
+    if len(target_flat) == 0:
+        raise EpisodeSkipped("target_has_no_voxels", episode.episode_id)
+    free_floor = world.free_floor_area
+    if free_floor < config.min_free_floor_m2:
+        raise EpisodeSkipped("too_little_free_floor", f"{episode.episode_id}: {free_floor:.2f} m^2")
+    trajectory_rng, noise_rng = episode_rngs(config.seed, episode.episode_id)
+    poses = trajectory(world, config.n_steps, trajectory_rng, config.policy)
+    names = sorted({*world.labels, FREE_LABEL, UNKNOWN_LABEL, episode.target.label})
+    id_of = {name: k for k, name in enumerate(names)}
+    camera = camera or Camera(config.camera)
+    is_target_voxel = np.zeros(grid.n_voxels, dtype=bool)
+    is_target_voxel[target_flat] = True
+    seconds = {"world": time.perf_counter() - started, "camera": 0.0, "noise": 0.0}
+    frames = []
+    for pose in poses:
+        t0 = time.perf_counter()
+        seen = camera.observe(world, pose)
+        t1 = time.perf_counter()
+        noisy = config.noise.corrupt(seen.labels, episode.target.label, noise_rng, vocabulary=world.labels)
+        uniq, inverse = np.unique(noisy, return_inverse=True)
+        label_ids = np.array([id_of[str(u)] for u in uniq], dtype=np.uint32)[inverse]
+        voxels = np.stack(np.unravel_index(seen.flat_idx, grid.shape), axis=1).astype(np.int32)
+        frames.append(Frame(voxels, label_ids, bool(is_target_voxel[seen.flat_idx].any())))
+        seconds["camera"] += t1 - t0
+        seconds["noise"] += time.perf_counter() - t1
+    return PreparedEpisode(
+        episode=episode,
+        grid=grid,
+        target_flat=target_flat,
+        label_map=dict(enumerate(names)),
+        frames=tuple(frames),
+        free_floor_m2=free_floor,
+        seconds=seconds,
+    )
+
+
+def prepared_episodes(
+    episodes: Iterable[Episode], config: SimConfig, skips: Counter[str], require_utterance: bool = False
+) -> Iterator[PreparedEpisode]:
+    """The episodes fit to run, prepared in order; the others counted in `skips` by reason."""
+    camera = Camera(config.camera)
+    for episode in episodes:
+        try:
+            yield prepare_episode(episode, config, camera, require_utterance)
+        except EpisodeSkipped as exc:
+            skips[exc.reason] += 1
+            log.debug("skipped %s", exc)
+
+
+@dataclass(frozen=True)
+class MethodRun:
+    """One method's session over one episode."""
+
+    outcome: EpisodeOutcome
+    grounded: bool | None  # the grounding's own flag; None without an utterance
+    seconds: dict[str, float]  # observations (POSTs), grid reads, setup (create, utterance, delete)
+
+
+class _Stopwatch:
+    """Seconds spent per kind of request."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {"observations": 0.0, "grid_reads": 0.0, "setup": 0.0}
+
+    def call(self, kind: str, func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        started = time.perf_counter()
+        try:
+            return func(*args, **kwargs)
+        finally:
+            self.seconds[kind] += time.perf_counter() - started
+
+
+def check_session_grid(session: dict[str, Any], grid: VoxelGrid) -> None:
+    """SimError unless the session's grid is the one the episode's world was built on."""
+    got = session.get("grid") or {}
+    same = (
+        list(got.get("shape", [])) == list(grid.shape)
+        and np.allclose(got.get("min_corner", [np.nan] * 3), grid.origin, atol=1e-6)
+        and abs(float(got.get("voxel_size", np.nan)) - grid.voxel_size) < 1e-9
+    )
+    if not same:
+        msg = (
+            f"the service's grid {got} differs from the simulator's (origin {list(grid.origin)}, shape "
+            f"{list(grid.shape)}, voxel size {grid.voxel_size}): observed voxel indices would be wrong"
+        )
+        raise SimError(msg)
+
+
+def run_method(
+    client: VLMapClient, prepared: PreparedEpisode, method: str, config: SimConfig, robot_id: str = "sim"
+) -> MethodRun:
+    """One session of `method` over the prepared episode (module docstring, steps 1-5)."""
+    options = METHOD_OPTIONS[method]
+    episode, grid, target = prepared.episode, prepared.grid, prepared.episode.target
+    watch = _Stopwatch()
+    session = watch.call(
+        "setup",
+        client.create_session,
+        f"{robot_id}-{method}",
+        episode.service_graph.model_dump(mode="json"),
+        grid={"voxel_size": config.voxel_size, "margin": config.margin},
+        target_label=target.label,
+        sensor_model={"tp": config.noise.tp, "fp": config.noise.fp},
+        label_map={str(k): name for k, name in prepared.label_map.items()},
+    )
+    session_id = session["id"]
+    checkpoints = set(config.checkpoints)
+    n_steps = len(prepared.frames)
+    progress: list[float] = []
+    masses: list[float] = []
+    distances: list[float] = []
+
+    def record(step: int, summary: dict[str, Any]) -> None:
+        posterior = watch.call("grid_reads", client.get_belief_grid, session_id).posterior
+        progress.append(step / n_steps)
+        masses.append(target_mass(posterior, prepared.target_flat))
+        distances.append(box_distance(summary["map_voxel"]["center"], target.min_corner, target.max_corner))
+
+    try:
+        check_session_grid(session, grid)
+        grounded = None
+        if options is None:
+            belief, _ = watch.call("setup", client.get_belief, session_id)
+            summary = belief["summary"]
+        else:
+            answer = watch.call(
+                "setup", client.send_utterance, session_id, episode.utterance, options=options
+            )
+            grounded = bool(answer["grounding"]["grounded"])
+            summary = answer["belief"]["summary"]
+        record(0, summary)
+        for step, frame in enumerate(prepared.frames, start=1):
+            answer = watch.call(
+                "observations",
+                client.send_observations,
+                session_id,
+                voxels=frame.voxels,
+                labels=frame.label_ids,
+            )
+            if step in checkpoints:
+                record(step, answer["belief"]["summary"])
+    finally:
+        watch.call("setup", client.delete_session, session_id)
+    outcome = EpisodeOutcome(
+        episode_id=episode.episode_id,
+        method=method,
+        target_seen=prepared.target_seen,
+        n_target=len(prepared.target_flat),
+        n_voxels=grid.n_voxels,
+        progress=tuple(progress),
+        mass=tuple(masses),
+        argmax_distance=tuple(distances),
+    )
+    return MethodRun(outcome=outcome, grounded=grounded, seconds=watch.seconds)
+
+
+def available_models(client: VLMapClient, role: str = "grounder") -> list[str]:
+    """Names of the grounders (or proposers) the service has loaded (GET /v1/models)."""
+    response = client.http.get("/v1/models")
+    if response.status_code != 200:
+        msg = f"GET /v1/models answered {response.status_code}: {response.text[:200]}"
+        raise SimError(msg)
+    return [m["name"] for m in response.json()["models"] if m.get("role") == role]
+
+
+def check_service(client: VLMapClient, methods: Sequence[str]) -> None:
+    """SimError unless the service has loaded every grounder and proposer the methods need."""
+    grounders, proposers = needed_parts(methods)
+    for role, needed in (("grounder", grounders), ("proposer", proposers)):
+        loaded = available_models(client, role)
+        missing = sorted(needed - set(loaded))
+        if missing:
+            hints = []
+            if "lsm" in missing:
+                hints.append(
+                    "lsm needs trained weights in the service's model_dir (models/lsm) and "
+                    "VLMAP_GROUNDERS naming it"
+                )
+            if set(missing) & {*LLM_METHODS, "llm"}:
+                hints.append("the LLM baselines need a service started with an endpoint (VLMAP_LLM_URL)")
+            hint = f" ({'; '.join(hints)})" if hints else ""
+            msg = f"the service lacks the {role}s {missing} that {list(methods)} need; it has {loaded}{hint}"
+            raise SimError(msg)
+
+
+@dataclass
+class EpisodeRecord:
+    """What the run keeps of one episode: its description and each method's run."""
+
+    episode_id: str
+    scene_id: str
+    source: str
+    utterance: str | None
+    target_label: str
+    n_target_voxels: int
+    n_voxels: int
+    free_floor_m2: float
+    target_seen: bool
+    first_seen_step: int | None
+    runs: dict[str, MethodRun] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "episode_id": self.episode_id,
+            "scene_id": self.scene_id,
+            "source": self.source,
+            "utterance": self.utterance,
+            "target_label": self.target_label,
+            "n_target_voxels": self.n_target_voxels,
+            "n_voxels": self.n_voxels,
+            "free_floor_m2": round(self.free_floor_m2, 3),
+            "target_seen": self.target_seen,
+            "first_seen_step": self.first_seen_step,
+            "methods": {
+                method: {
+                    "grounded": run.grounded,
+                    "progress": list(run.outcome.progress),
+                    "target_mass": list(run.outcome.mass),
+                    "information_gain": run.outcome.information_gain.tolist(),
+                    "argmax_distance_m": list(run.outcome.argmax_distance),
+                }
+                for method, run in self.runs.items()
+            },
+        }
+
+
+@dataclass
+class SimResult:
+    """A whole run: per-episode records, skip counts and where the time went (seconds)."""
+
+    methods: tuple[str, ...]
+    config: SimConfig
+    records: list[EpisodeRecord] = field(default_factory=list)
+    skips: Counter[str] = field(default_factory=Counter)
+    seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
+
+    @property
+    def outcomes(self) -> list[EpisodeOutcome]:
+        return [run.outcome for r in self.records for run in r.runs.values()]
+
+
+def run_simulation(
+    client: VLMapClient,
+    episodes: Iterable[Episode],
+    n_episodes: int,
+    methods: Sequence[str],
+    config: SimConfig,
+    progress: bool = True,
+) -> SimResult:
+    """Run up to `n_episodes` fit episodes (in the order given) with every method on each.
+
+    The next episode's frames are computed in a background thread while the service works on the current
+    one (numpy and the HTTP wait release the GIL), which keeps both cores busy on a 2-core machine.
+    """
+    methods = check_methods(methods)
+    check_service(client, methods)
+    result = SimResult(methods=methods, config=config)
+    stream = prepared_episodes(episodes, config, result.skips, needs_utterance(methods))
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_episodes * len(methods), desc="episodes x methods", unit="run", dynamic_ncols=True)
+    started = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="sim-frames") as pool:
+        upcoming: Future[PreparedEpisode | None] | None = pool.submit(next, stream, None)
+        try:
+            while upcoming is not None and len(result.records) < n_episodes:
+                prepared = upcoming.result()
+                if prepared is None:
+                    break
+                wanted_more = len(result.records) + 1 < n_episodes
+                upcoming = pool.submit(next, stream, None) if wanted_more else None
+                for kind, seconds in prepared.seconds.items():
+                    result.seconds[kind] += seconds
+                result.records.append(_run_episode(client, prepared, methods, config, result, bar))
+        finally:
+            if upcoming is not None:
+                upcoming.cancel()
+            if bar is not None:
+                bar.close()
+    result.seconds["wall"] = time.perf_counter() - started
+    return result
+
+
+def _run_episode(
+    client: VLMapClient,
+    prepared: PreparedEpisode,
+    methods: Sequence[str],
+    config: SimConfig,
+    result: SimResult,
+    bar: Any,
+) -> EpisodeRecord:
+    episode = prepared.episode
+    record = EpisodeRecord(
+        episode_id=episode.episode_id,
+        scene_id=episode.scene_id,
+        source=episode.source,
+        utterance=episode.utterance,
+        target_label=episode.target.label,
+        n_target_voxels=len(prepared.target_flat),
+        n_voxels=prepared.grid.n_voxels,
+        free_floor_m2=prepared.free_floor_m2,
+        target_seen=prepared.target_seen,
+        first_seen_step=prepared.first_seen_step,
+    )
+    for method in methods:
+        run = run_method(client, prepared, method, config)
+        record.runs[method] = run
+        for kind, seconds in run.seconds.items():
+            result.seconds[f"http_{kind}"] += seconds
+        if bar is not None:
+            bar.update(1)
+    return record
