@@ -85,6 +85,7 @@ class PosteriorSummary:
     information_gain_nats: float
     objects: tuple[PlaceMass, ...] = ()
     regions: tuple[PlaceMass, ...] = ()
+    version: int | None = None  # the belief version summarised, when a store knows it
 
     def describe(self, n: int = 3) -> str:
         """E.g. "0.62 on table 7, 0.30 on kitchen counter 2, 0.03 on chair 5"."""

@@ -102,7 +102,7 @@ class SessionStore(Protocol):
         ...
 
     def summary(self, session_id: str, **kwargs: Any) -> PosteriorSummary:
-        """`app.belief.summary.summarize` of the session (keyword arguments pass through)."""
+        """`app.belief.summary.summarize` of one consistent state of the session, with its `version`."""
         ...
 
     def purge_expired(self) -> int:

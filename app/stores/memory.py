@@ -24,6 +24,7 @@ session, then registry, then log.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import logging
 import os
@@ -553,7 +554,8 @@ class MemorySessionStore:
     def summary(self, session_id: str, **kwargs: Any) -> PosteriorSummary:
         with self._locked(session_id) as entry:
             s = entry.session
-            return summarize(s.grid, s.belief.lang, s.belief.vis, s.scene_graph, **kwargs)
+            summary = summarize(s.grid, s.belief.lang, s.belief.vis, s.scene_graph, **kwargs)
+            return dataclasses.replace(summary, version=s.version)
 
     def purge_expired(self) -> int:
         if self.ttl_s is None:

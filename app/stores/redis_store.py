@@ -474,7 +474,10 @@ class RedisSessionStore:
     @_redis_errors
     def summary(self, session_id: str, **kwargs: Any) -> PosteriorSummary:
         session = self.get(session_id)
-        return summarize(session.grid, session.belief.lang, session.belief.vis, session.scene_graph, **kwargs)
+        summary = summarize(
+            session.grid, session.belief.lang, session.belief.vis, session.scene_graph, **kwargs
+        )
+        return dataclasses.replace(summary, version=session.version)
 
     @_redis_errors
     def purge_expired(self) -> int:

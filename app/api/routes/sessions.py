@@ -37,7 +37,7 @@ from app.api.services import SummaryCache
 from app.api.wire import MSGPACK_TYPES, ObservationBatch, check_batch_size, decode_msgpack_batch, pack_array
 from app.belief.grid import VoxelGrid
 from app.belief.session import SensorModel, SessionInfo, check_target_label, new_session
-from app.errors import InvalidInput, LimitExceeded, StoreUnavailable, UnsupportedMediaType
+from app.errors import InvalidInput, LimitExceeded, UnsupportedMediaType
 from app.grounding.sensor import LanguageSensor
 from app.settings import Settings
 from app.stores.base import SessionStore
@@ -100,26 +100,21 @@ def session_out(info: SessionInfo) -> SessionOut:
 def belief_out(
     store: SessionStore, cache: SummaryCache, session_id: str, top_k: int = 5, info: SessionInfo | None = None
 ) -> BeliefOut:
-    """The posterior summary at the current version (cached per version; read on both sides of the sum)."""
-    before = info or store.info(session_id)
-    for _ in range(3):
-        cached = cache.get((session_id, before.version, top_k))
-        if cached is not None:
-            return cached  # type: ignore[no-any-return]
-        summary = store.summary(session_id, top_k=top_k)
-        after = store.info(session_id)
-        if before.version == after.version:
-            body = BeliefOut(
-                session_id=session_id,
-                version=after.version,
-                target_label=after.target_label or None,
-                summary=PosteriorSummaryOut.model_validate(summary.to_dict()),
-            )
-            cache.put((session_id, after.version, top_k), body)
-            return body
-        before = after
-    msg = f"session {session_id} changes faster than it can be summarised; retry"
-    raise StoreUnavailable(msg)
+    """The posterior summary of the current version, computed once per version."""
+    info = info or store.info(session_id)
+    cached = cache.get((session_id, info.version, top_k))
+    if cached is not None:
+        return cached  # type: ignore[no-any-return]
+    summary = store.summary(session_id, top_k=top_k)
+    version = info.version if summary.version is None else summary.version
+    body = BeliefOut(
+        session_id=session_id,
+        version=version,
+        target_label=info.target_label or None,
+        summary=PosteriorSummaryOut.model_validate(summary.to_dict()),
+    )
+    cache.put((session_id, version, top_k), body)
+    return body
 
 
 def names_a_class(target: str, label_map: dict[int, str]) -> bool:
