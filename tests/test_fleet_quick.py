@@ -10,7 +10,9 @@ from bench import fleet
 
 
 @pytest.mark.redis
-@pytest.mark.skipif(shutil.which("redis-server") is None, reason="needs redis-server (apt-get install redis-server)")
+@pytest.mark.skipif(
+    shutil.which("redis-server") is None, reason="needs redis-server (apt-get install redis-server)"
+)
 def test_small_fleet_survives_redis_restart_kill_9_and_disconnects() -> None:
     results = fleet.main(
         ["--robots", "3", "--dashboards", "1", "--voxels", "2000", "--duration", "3", "--fault-duration", "6"]
