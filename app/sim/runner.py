@@ -440,7 +440,9 @@ class EpisodeRecord:
 
 @dataclass
 class SimResult:
-    """A whole run: per-episode records, skip counts and where the time went (seconds)."""
+    """A whole run: per-episode records, skip counts and where the time went (seconds): world, camera and
+    noise (frames, computed in the background thread), frames_wait (the main thread waiting for them),
+    http_observations, http_grid_reads, http_setup (create, utterance, delete) and wall."""
 
     methods: tuple[str, ...]
     config: SimConfig
@@ -480,7 +482,9 @@ def run_simulation(
         upcoming: Future[PreparedEpisode | None] | None = pool.submit(next, stream, None)
         try:
             while upcoming is not None and len(result.records) < n_episodes:
+                waited = time.perf_counter()
                 prepared = upcoming.result()
+                result.seconds["frames_wait"] += time.perf_counter() - waited
                 if prepared is None:
                     break
                 wanted_more = len(result.records) + 1 < n_episodes
