@@ -16,6 +16,7 @@ import shlex
 import sys
 import tempfile
 from collections.abc import Sequence
+from contextlib import ExitStack
 from pathlib import Path
 
 from app.sim.metrics import SUCCESS_MASS
@@ -128,10 +129,13 @@ def run(args: argparse.Namespace) -> int:
         if args.url is not None:
             return simulate(args.url)
         env = service_env(methods)
-        with (
-            tempfile.TemporaryDirectory(prefix="vlmap-sim-") as data_dir,
-            running_service({**env, "VLMAP_DATA_DIR": data_dir}) as url,
-        ):
+        with tempfile.TemporaryDirectory(prefix="vlmap-sim-") as data_dir, ExitStack() as stack:
+            try:
+                url = stack.enter_context(running_service({**env, "VLMAP_DATA_DIR": data_dir}))
+            except RuntimeError as exc:
+                settings = " ".join(f"{k}={shlex.quote(v)}" for k, v in env.items())
+                msg = f"{exc}; `{settings} vlmap serve` shows why (e.g. LSM weights that do not fit the code)"
+                raise SimError(msg) from exc
             return simulate(url)
     except (SimError, InvalidInput) as exc:
         print(f"vlmap sim: {exc}", file=sys.stderr)
