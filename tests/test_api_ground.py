@@ -184,3 +184,13 @@ def test_an_unloaded_grounder_is_422(client: TestClient, scene_graph_dict: dict)
     response = _ground(client, scene_graph_dict, "the bag is on the desk", options={"grounder": "lsm"})
     assert response.status_code == 422
     assert response.json()["field"] == "options.grounder"
+
+
+def test_curl_d_without_a_content_type_header_works(client: TestClient, scene_graph_dict: dict) -> None:
+    """`curl -d @file` sends a form content type; the body is read as JSON."""
+    body = json.dumps({"scene_graph": scene_graph_dict, "utterance": "the bag is on the desk"})
+    headers = {"content-type": "application/x-www-form-urlencoded"}
+    response = client.post("/v1/ground", content=body, headers=headers)
+    assert response.status_code == 200, response.text
+    garbage = client.post("/v1/ground", content="utterance=hello", headers=headers)
+    assert garbage.status_code == 422

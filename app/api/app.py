@@ -12,6 +12,7 @@ import anyio.to_thread
 from fastapi import Depends, FastAPI
 
 from app import __version__
+from app.api.content_types import FormAsJsonMiddleware
 from app.api.deps import reject_unknown_query
 from app.api.errors import install_error_handlers
 from app.api.limits import BodySizeLimitMiddleware
@@ -102,6 +103,7 @@ def create_app(
     install_error_handlers(app)
     for module in (health, models, metrics, ground, scene_graphs, sessions):
         app.include_router(module.router)
+    app.add_middleware(FormAsJsonMiddleware)
     app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
     app.add_middleware(RequestContextMiddleware, metrics=services.metrics)  # outermost: sees every answer
     return app
