@@ -260,17 +260,21 @@ class UtteranceOut(BaseModel):
     belief: BeliefOut
 
 
+VoxelIndex = Annotated[int, Field(ge=-(2**31), lt=2**31, description="Voxel index along one axis (int32).")]
+LabelId = Annotated[int, Field(ge=0, lt=2**32, description="An id of the session's label map (uint32).")]
+
+
 class ObservationBatchJson(BaseModel):
     """Labelled voxels (or points) seen by the robot, for small batches; large ones go as msgpack."""
 
     model_config = ConfigDict(extra="forbid")
 
     stamp: float | None = Field(default=None, allow_inf_nan=False, description="Sensor time (s), echoed.")
-    voxels: list[Annotated[list[int], Field(min_length=3, max_length=3)]] | None = Field(
+    voxels: list[Annotated[list[VoxelIndex], Field(min_length=3, max_length=3)]] | None = Field(
         default=None, description="Voxel indices [i, j, k] in the session's grid."
     )
     points: list[Vec3] | None = Field(default=None, description="Points (m) in the scene graph's frame.")
-    labels: list[int] | list[str] | None = Field(
+    labels: list[LabelId] | list[Annotated[str, Field(max_length=256)]] | None = Field(
         default=None, description="One label per voxel: class names, or integer ids of the label map."
     )
     p_target: list[Annotated[float, Field(ge=0.0, le=1.0)]] | None = Field(
