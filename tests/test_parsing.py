@@ -1,8 +1,13 @@
+import numpy as np
 import pytest
 
+from app.data.templates import LABEL_SYNONYMS, RELATION_PHRASES, render_utterance
 from app.grounding.parsing import parse_utterance
 from app.grounding.relations import Relation
 
+REGIONS = ("kitchen", "bedroom", "living room")
+
+# utterance, target, relation, anchor phrases, region
 CASES = [
     ("I left my backpack on the table", "backpack", Relation.ON, ("table",), None),
     ("The mug is next to the sink", "mug", Relation.NEAR, ("sink",), None),
@@ -10,6 +15,7 @@ CASES = [
     ("my keys are by the door", "keys", Relation.NEAR, ("door",), None),
     ("There is a box under the desk", "box", Relation.BELOW, ("desk",), None),
     ("the cat toy is beneath the bed", "cat toy", Relation.BELOW, ("bed",), None),
+    ("the shoes are below the bench", "shoes", Relation.BELOW, ("bench",), None),
     ("it's on top of the dresser", "", Relation.ON, ("dresser",), None),
     ("my wallet is inside the drawer", "wallet", Relation.IN, ("drawer",), None),
     ("the clock is above the tv", "clock", Relation.ABOVE, ("tv",), None),
@@ -24,6 +30,45 @@ CASES = [
     ("find the chair closest to the door", "chair", Relation.CLOSEST, ("door",), None),
     ("the bag is near the table in the kitchen", "bag", Relation.NEAR, ("table",), "kitchen"),
     ("I put my phone on one of the chairs", "phone", Relation.ON, ("chairs",), None),
+    # region mentions anywhere, with storeys; a room word that is part of a label stays in the anchor
+    ("the mug is in the kitchen on the counter", "mug", Relation.ON, ("counter",), "kitchen"),
+    (
+        "my book is on the nightstand in the upstairs bedroom",
+        "book",
+        Relation.ON,
+        ("nightstand",),
+        "upstairs bedroom",
+    ),
+    ("the keys are on the table upstairs", "keys", Relation.ON, ("table",), "upstairs"),
+    ("the cup is in the kitchen cabinet", "cup", Relation.IN, ("kitchen cabinet",), None),
+    ("the pillow is on the sofa in the living room", "pillow", Relation.ON, ("sofa",), "living room"),
+    ("the bag is in the kitchen", "bag", Relation.NEAR, (), "kitchen"),
+    # attributes stay on the anchor phrase
+    ("the remote is on the small table", "remote", Relation.ON, ("small table",), None),
+    ("the mug is on the white cabinet", "mug", Relation.ON, ("white cabinet",), None),
+    # plurals, "the other", alternatives, nested relations
+    ("the lamp is between the chairs", "lamp", Relation.BETWEEN, ("chairs",), None),
+    ("the lamp is between the chair and the other chair", "lamp", Relation.BETWEEN, ("chair", "chair"), None),
+    ("the keys are on the table or the desk", "keys", Relation.ON, ("table", "desk"), None),
+    ("the cup is on the table by the window", "cup", Relation.ON, ("table",), None),
+    # fronted sentences and lead-ins of the generated data
+    ("right above the shelf there is a book", "book", Relation.ABOVE, ("shelf",), None),
+    (
+        "check between the keyboard and the box for the mouse",
+        "mouse",
+        Relation.BETWEEN,
+        ("keyboard", "box"),
+        None,
+    ),
+    ("my chair is the one furthest away from the door", "chair", Relation.FARTHEST, ("door",), None),
+    ("the armchair should be near to the railing", "armchair", Relation.NEAR, ("railing",), None),
+    ("the plates are stored in the cupboard", "plates", Relation.IN, ("cupboard",), None),
+    ("I'm pretty sure my mug is just under the shelf", "mug", Relation.BELOW, ("shelf",), None),
+    ("you'll find the towel up above the bathtub", "towel", Relation.ABOVE, ("bathtub",), None),
+    ("there's a mug on the counter", "mug", Relation.ON, ("counter",), None),
+    ("the cup that is on the table", "cup", Relation.ON, ("table",), None),
+    ("the cat is sleeping in the box", "cat", Relation.IN, ("box",), None),
+    ("Could you find my wallet? It's under the sofa", "wallet", Relation.BELOW, ("sofa",), None),
 ]
 
 
@@ -31,22 +76,74 @@ CASES = [
 def test_parse(
     utterance: str, target: str, relation: Relation, anchors: tuple[str, ...], region: str | None
 ) -> None:
-    parse = parse_utterance(utterance, region_names=("kitchen", "bedroom"))
+    parse = parse_utterance(utterance, region_names=REGIONS)
     assert (parse.target, parse.relation, parse.anchor_phrases, parse.region_phrase) == (
         target,
         relation,
         anchors,
         region,
     )
+    assert parse.relation_known
 
 
-def test_unknown_region_stays_part_of_the_anchor_phrase() -> None:
+def test_attribute_words_are_listed() -> None:
+    parse = parse_utterance("the mug is on the small white table")
+    assert parse.anchor_phrases == ("small white table",)
+    assert parse.attributes == ("small", "white")
+    # The last word is the noun even when it could be an attribute.
+    assert parse_utterance("the mug is next to the glass").attributes == ()
+
+
+@pytest.mark.parametrize(
+    ("utterance", "target", "anchor"),
+    [
+        ("the keys are behind the tv", "keys", "tv"),
+        ("my phone is in front of the couch", "phone", "couch"),
+        ("the box is to the left of the door", "box", "door"),
+        ("the book is at the desk", "book", "desk"),
+        ("the ball is halfway up the stairs", "ball", "stairs"),  # no listed phrase: the copula fallback
+    ],
+)
+def test_unknown_relation_words_read_as_near_with_a_flag(utterance: str, target: str, anchor: str) -> None:
+    parse = parse_utterance(utterance)
+    assert (parse.target, parse.relation, parse.anchor_phrases) == (target, Relation.NEAR, (anchor,))
+    assert parse.relation_phrase == ""
+    assert not parse.relation_known
+
+
+def test_room_words_are_regions_even_when_the_map_does_not_name_them() -> None:
     parse = parse_utterance("the bag is near the table in the garage", region_names=("kitchen",))
-    assert parse.anchor_phrases == ("table in the garage",)
-    assert parse.region_phrase is None
+    assert (parse.anchor_phrases, parse.region_phrase) == (("table",), "garage")
 
 
 def test_no_relation_word_means_no_anchor() -> None:
     parse = parse_utterance("where is my backpack")
     assert parse.anchor_phrases == ()
     assert parse.target == "backpack"
+    assert parse.relation_phrase == ""
+
+
+@pytest.mark.parametrize("relation", list(Relation))
+def test_generated_utterances_parse_back(relation: Relation) -> None:
+    """Every template and phrase of the data generator reads back to its relation and anchor labels."""
+    rng = np.random.default_rng(7)
+    labels = ["table", "kitchen counter", "trash can", "sofa chair", "books", "light", "tv stand", "glass"]
+    for _ in range(150):
+        target, first, second = (labels[int(i)] for i in rng.integers(len(labels), size=3))
+        anchors = (first, second)[: relation.n_anchors]
+        utterance = render_utterance(relation, target, anchors, rng, portable=bool(rng.integers(2)))
+        parse = parse_utterance(utterance)
+        assert parse.relation is relation, utterance
+        said = [{a, *LABEL_SYNONYMS.get(a, ())} for a in anchors]
+        assert len(parse.anchor_phrases) == len(anchors), utterance
+        assert all(p in s for p, s in zip(parse.anchor_phrases, said, strict=True)), utterance
+
+
+def test_every_generator_phrase_is_read_as_its_relation() -> None:
+    for relation, phrases in RELATION_PHRASES.items():
+        for phrase in phrases:
+            second = " and the sofa" if relation is Relation.BETWEEN else ""
+            parse = parse_utterance(f"the mug is {phrase} the table{second}")
+            assert (parse.relation, parse.anchor_phrases[0], parse.target) == (relation, "table", "mug"), (
+                phrase
+            )

@@ -1,26 +1,53 @@
 """Utterance templates: how people say where something is, per relation.
 
-`RELATION_PHRASES` is the one table of relation words and their synonyms; a parser can import it to read
-utterances back. Sentence frames differ by kind of relation: locative ("the mug is on the counter"), ternary
-("the lamp is between the sofa and the armchair") and ordinal ("the chair closest to the door"). Frames that
-speak of "my <thing>" are used only for portable targets. All randomness comes from the caller's generator.
+The relation vocabulary is the grounding's table (`app.grounding.relations.RELATION_PHRASES`), with which the
+parser reads utterances back; `RELATION_PHRASES` here is what the generator says: the vocabulary less the
+phrases that do not fit a statement, plus a few generation-only phrasings (a vocabulary phrase with a modifier
+the parser absorbs, "just above", "farthest away from"). Sentence frames differ by kind of relation: locative
+("the mug is on the counter"), ternary ("the lamp is between the sofa and the armchair") and ordinal ("the
+chair closest to the door"). Frames that speak of "my <thing>" are used only for portable targets. All
+randomness comes from the caller's generator.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from app.grounding.relations import RELATION_PHRASES as VOCABULARY
 from app.grounding.relations import Relation
 
+# Vocabulary phrases that a statement "the mug is <rel> the anchor" does not use: motion words ("onto"),
+# bare ordinals ("closest the door"), rare or target-specific variants ("hanging over", "besides").
+_UNSPOKEN = frozenset(
+    {
+        "on the top of",
+        "onto",
+        "atop",
+        "into",
+        "besides",
+        "alongside",
+        "adjacent to",
+        "around",
+        "against",
+        "hanging over",
+        "closest",
+        "farthest",
+        "furthest",
+    }
+)
+#: Generation-only phrasings: a vocabulary phrase with a modifier that the parser absorbs.
+GENERATION_ONLY_PHRASES: dict[Relation, tuple[str, ...]] = {
+    Relation.IN: ("stored in",),
+    Relation.NEAR: ("right next to", "near to"),
+    Relation.ABOVE: ("just above", "up above", "right above"),
+    Relation.BELOW: ("just under",),
+    Relation.FARTHEST: ("farthest away from", "furthest away from"),
+}
+#: What the generator says for each relation (drawn uniformly).
 RELATION_PHRASES: dict[Relation, tuple[str, ...]] = {
-    Relation.ON: ("on", "on top of", "sitting on", "lying on", "resting on"),
-    Relation.IN: ("in", "inside", "inside of", "within", "stored in"),
-    Relation.NEAR: ("near", "next to", "by", "beside", "close to", "right next to", "right by", "near to"),
-    Relation.BETWEEN: ("between", "in between"),
-    Relation.ABOVE: ("above", "over", "just above", "up above", "right above"),
-    Relation.BELOW: ("under", "below", "underneath", "beneath", "just under"),
-    Relation.CLOSEST: ("closest to", "nearest to", "nearest"),
-    Relation.FARTHEST: ("farthest from", "furthest from", "farthest away from", "furthest away from"),
+    relation: tuple(p for p in VOCABULARY[relation] if p not in _UNSPOKEN)
+    + GENERATION_ONLY_PHRASES.get(relation, ())
+    for relation in Relation
 }
 
 # Other names people use for a labelled object; a phrase keeps the label itself most of the time.

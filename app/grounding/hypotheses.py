@@ -28,6 +28,8 @@ class UtteranceParse:
     relation_phrase: str = ""
     region_phrase: str | None = None
     attributes: tuple[str, ...] = ()
+    # False when the relation was guessed ("near") from a spatial phrase the sensor does not model.
+    relation_known: bool = True
 
 
 @dataclass(frozen=True)
