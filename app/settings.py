@@ -23,6 +23,10 @@ class Settings(BaseSettings):
     grounder: Literal["lsm", "geometric", "fixed"] = Field(
         default="geometric", description="Default spatial grounder; requests may pick another loaded one."
     )
+    proposer: Literal["builtin", "lexical"] = Field(
+        default="builtin",
+        description="Default proposer: calibrated built-in (MiniLM features) or lexical (uniform weights).",
+    )
     grounders: list[Literal["lsm", "geometric", "fixed"]] = Field(
         default=["geometric", "fixed"], description="Grounders to load besides the default one."
     )

@@ -31,8 +31,17 @@ def scene_graph_dict() -> dict[str, Any]:
 
 @pytest.fixture
 def settings() -> Settings:
-    """In-memory sessions (no data directory), no rate limit: what most tests want."""
-    return Settings(_env_file=None, log_json=False, data_dir=None, rate_limit_per_s=0)  # type: ignore[call-arg]
+    """In-memory sessions, no rate limit, and the model-free parts (geometric grounder, lexical proposer):
+    what most tests want. The shipped models are tested where they are the subject."""
+    return Settings(  # type: ignore[call-arg]
+        _env_file=None,
+        log_json=False,
+        data_dir=None,
+        rate_limit_per_s=0,
+        grounder="geometric",
+        grounders=["geometric", "fixed"],
+        proposer="lexical",
+    )
 
 
 @pytest.fixture

@@ -63,3 +63,15 @@ def test_metrics_count_requests_and_time_inference_stages(client: TestClient, sc
     # Route templates, never raw paths, so the label set stays bounded.
     client.get("/no/such/path/123")
     assert 'route="unmatched"' in client.get("/metrics").text
+
+
+def test_the_default_service_uses_the_calibrated_builtin_proposer(scene_graph_dict: dict) -> None:
+    defaults = Settings(_env_file=None, data_dir=None, log_json=False)  # type: ignore[call-arg]
+    with TestClient(create_app(defaults)) as client:
+        proposers = [m for m in client.get("/v1/models").json()["models"] if m["role"] == "proposer"]
+        body = {"scene_graph": scene_graph_dict, "utterance": "I left my backpack on the table"}
+        answer = client.post("/v1/ground", json=body).json()
+    assert [p["name"] for p in proposers] == ["builtin"]
+    assert proposers[0]["checksum"].startswith("sha256:")
+    weights = [h["weight"] for h in answer["hypotheses"]]
+    assert len(weights) == 2 and abs(sum(weights) - 1) < 1e-9  # the room's two tables

@@ -21,6 +21,7 @@ falls back to a broad region or scene prior.
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
 import threading
@@ -319,6 +320,18 @@ class BuiltinProposer:
     def load(cls, encoder: TextEncoder, path: Path | None = None, max_hypotheses: int = 5) -> BuiltinProposer:
         """The proposer with parameters read from `path` (default models/proposer/params.json)."""
         return cls(encoder, ProposerParams.load(path or DEFAULT_PARAMS_PATH), max_hypotheses)
+
+    def describe(self) -> dict[str, Any]:
+        """Name, version, config and the checksum of the fitted parameters (for /v1/models)."""
+        params = self.params.to_json()
+        digest = hashlib.sha256(json.dumps(params, sort_keys=True).encode()).hexdigest()
+        config = {"max_hypotheses": self.max_hypotheses, "temperature": params["temperature"]}
+        return {
+            "name": self.name,
+            "version": str(params["version"]),
+            "config": config,
+            "checksum": f"sha256:{digest}",
+        }
 
     def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal:
         region_names = tuple(normalise(r.name) for r in scene_graph.regions if r.name)

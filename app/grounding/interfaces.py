@@ -21,6 +21,10 @@ class HypothesisProposer(Protocol):
 
     def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal: ...
 
+    def describe(self) -> dict[str, Any]:
+        """Name, version, config and parameters checksum, for /v1/models."""
+        ...
+
 
 @runtime_checkable
 class Grounder(Protocol):

@@ -72,6 +72,14 @@ class LexicalProposer:
     def __init__(self, max_hypotheses: int = 5) -> None:
         self.max_hypotheses = max_hypotheses
 
+    def describe(self) -> dict[str, object]:
+        return {
+            "name": self.name,
+            "version": "1",
+            "config": {"max_hypotheses": self.max_hypotheses},
+            "checksum": None,
+        }
+
     def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal:
         region_names = tuple(normalise(r.name) for r in scene_graph.regions if r.name)
         parse = parse_utterance(utterance, region_names)

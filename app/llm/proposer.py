@@ -156,6 +156,16 @@ class LLMProposer:
         self.temperature = temperature
         self.on_fallback = on_fallback
 
+    def describe(self) -> dict[str, Any]:
+        """The endpoint (never its key), the softmax temperature and the fallback proposer."""
+        config = {
+            "endpoint": self.client.endpoint.describe(),
+            "temperature": self.temperature,
+            "max_hypotheses": self.max_hypotheses,
+            "fallback": self.fallback.name,
+        }
+        return {"name": self.name, "version": "1", "config": config, "checksum": None}
+
     def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal:
         region_names = tuple(normalise(r.name) for r in scene_graph.regions if r.name)
         parse = parse_utterance(utterance, region_names)

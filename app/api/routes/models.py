@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from fastapi import APIRouter
 
 from app.api.deps import PrincipalDep, SensorsDep
@@ -23,12 +21,5 @@ async def list_models(sensors: SensorsDep, _: PrincipalDep) -> ModelsResponse:
     """Name, version, config and weights checksum of each loaded grounder (default first) and the proposer."""
     names = [sensors.default, *sorted(n for n in sensors.grounders if n != sensors.default)]
     models = [ModelInfo(role="grounder", **sensors.grounders[n].describe()) for n in names]
-    models += [ModelInfo(role="proposer", **proposer_description(p)) for p in sensors.proposers.values()]
+    models += [ModelInfo(role="proposer", **p.describe()) for p in sensors.proposers.values()]
     return ModelsResponse(models=models)
-
-
-def proposer_description(proposer: object) -> dict[str, Any]:
-    describe = getattr(proposer, "describe", None)
-    if callable(describe):
-        return dict(describe())
-    return {"name": getattr(proposer, "name", "unknown"), "version": "1", "config": {}, "checksum": None}
