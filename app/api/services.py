@@ -7,8 +7,8 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import lru_cache, partial
-from typing import TYPE_CHECKING, Any, TypeVar
+from functools import partial
+from typing import Any, TypeVar
 
 import anyio.to_thread
 from anyio import CapacityLimiter
@@ -23,9 +23,6 @@ from app.grounding.sensor import LanguageSensor, StageObserver
 from app.settings import Settings
 from app.stores import open_store
 from app.stores.base import SessionStore
-
-if TYPE_CHECKING:
-    from app.lsm.text_encoder import TextEncoder
 
 log = logging.getLogger("vlmap.services")
 T = TypeVar("T")
@@ -58,21 +55,14 @@ def _pick(loaded: dict[str, Any], name: str, field: str) -> Any:
     return loaded[name]
 
 
-@lru_cache(maxsize=1)
-def shared_text_encoder() -> TextEncoder:
-    """The frozen MiniLM, loaded once per process and shared by the LSM and the built-in proposer."""
-    from app.lsm.text_encoder import TextEncoder
-
-    return TextEncoder()
-
-
 def build_proposer(settings: Settings) -> HypothesisProposer:
     """The default proposer: the calibrated built-in one, or the uniform lexical one (no model needed)."""
     if settings.proposer == "lexical":
         return LexicalProposer(max_hypotheses=settings.max_hypotheses)
     from app.grounding.builtin import BuiltinProposer
+    from app.lsm.text_encoder import default_text_encoder
 
-    return BuiltinProposer.load(shared_text_encoder(), max_hypotheses=settings.max_hypotheses)
+    return BuiltinProposer.load(default_text_encoder(), max_hypotheses=settings.max_hypotheses)
 
 
 def build_sensors(settings: Settings, metrics: Metrics) -> Sensors:
@@ -85,8 +75,9 @@ def build_sensors(settings: Settings, metrics: Metrics) -> Sensors:
             grounders[name] = FixedGrounder()
         elif name == "lsm":
             from app.lsm.grounder import LSMGrounder
+            from app.lsm.text_encoder import default_text_encoder
 
-            grounders[name] = LSMGrounder.load(settings.model_dir / "lsm", encoder=shared_text_encoder())
+            grounders[name] = LSMGrounder.load(settings.model_dir / "lsm", encoder=default_text_encoder())
     builtin = build_proposer(settings)
     proposers: dict[str, HypothesisProposer] = {"builtin": builtin}
     if settings.llm_url:

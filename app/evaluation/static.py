@@ -5,7 +5,7 @@ utterance, hypotheses=...)`. The hypotheses come from the proposer, run once per
 grounder (so the methods of one table differ only in their grounding):
 
 - `gt`: the case's true hypotheses with uniform weights (in practice one: `hypotheses[0]`);
-- `builtin`: the built-in referent proposer (`BUILTIN_PROPOSERS`: the first implementation that exists);
+- `builtin`: the calibrated built-in referent proposer (`app.grounding.builtin`, the service's default);
 - `llm`: the LLM proposer over an OpenAI-compatible endpoint, falling back to the built-in one.
 
 When a proposal holds no hypothesis (no anchor matched), the mixture is the sensor's broad prior. A grounder
@@ -53,8 +53,6 @@ the case carries it), bucketed 1, 2, 3-4, 5+.
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import logging
 import math
 import os
@@ -89,13 +87,6 @@ ECE_BINS = 10
 ABSENT_WEIGHT_FLOOR = 1e-6
 DEFAULT_HDR_SAMPLES = 5000
 _MAX_FAILURE_EXAMPLES = 5
-
-#: Implementations of the built-in proposer, preferred first, as (module, class) built with no arguments.
-#: The first whose module exists is used; the lexical proposer stands in until the calibrated one lands.
-BUILTIN_PROPOSERS: tuple[tuple[str, str], ...] = (
-    ("app.grounding.builtin", "BuiltinProposer"),
-    ("app.grounding.lexical", "LexicalProposer"),
-)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -134,14 +125,11 @@ class LLMOptions:
 
 
 def make_builtin_proposer() -> HypothesisProposer:
-    """The first implementation in `BUILTIN_PROPOSERS` whose module exists."""
-    for module_name, class_name in BUILTIN_PROPOSERS:
-        if importlib.util.find_spec(module_name) is None:
-            continue
-        proposer: HypothesisProposer = getattr(importlib.import_module(module_name), class_name)()
-        return proposer
-    msg = f"no built-in proposer implementation exists among {BUILTIN_PROPOSERS}"
-    raise ModelUnavailable(msg)
+    """The shipped built-in proposer, on the process's one MiniLM (shared with the LSM)."""
+    from app.grounding.builtin import BuiltinProposer
+    from app.lsm.text_encoder import default_text_encoder
+
+    return BuiltinProposer.load(default_text_encoder())
 
 
 def make_proposer(
@@ -174,10 +162,11 @@ def make_grounder(name: str, llm: LLMOptions, stack: ExitStack, model_dir: Path 
         return FixedGrounder()
     if name == "lsm":
         from app.lsm.grounder import DEFAULT_MODEL_DIR, LSMGrounder
+        from app.lsm.text_encoder import default_text_encoder
 
         where = model_dir or DEFAULT_MODEL_DIR
         try:
-            return LSMGrounder.load(where)
+            return LSMGrounder.load(where, encoder=default_text_encoder())
         except ModelUnavailable as exc:
             msg = f"--grounder lsm cannot load the LSM: {exc}. Train one (`vlmap train`) or pass --model-dir"
             raise ModelUnavailable(msg) from exc

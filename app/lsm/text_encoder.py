@@ -16,6 +16,7 @@ import hashlib
 import os
 from collections import OrderedDict
 from collections.abc import Sequence
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -120,3 +121,9 @@ def _load_transformer(model_dir: Path) -> tuple[Any, Any]:
     for param in model.parameters():
         param.requires_grad_(False)
     return tokenizer, model
+
+
+@lru_cache(maxsize=1)
+def default_text_encoder() -> TextEncoder:
+    """The shipped MiniLM, loaded once per process and shared (the LSM, the built-in proposer)."""
+    return TextEncoder()
