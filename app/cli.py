@@ -7,8 +7,8 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-# Modules exposing `add_parser(subparsers)`; each sets `func` on its parser. Imported lazily so that
-# `vlmap serve` does not pay for torch or matplotlib.
+# Modules exposing `add_parser(subparsers)`; each sets `func` on its parser and keeps its heavy imports
+# (torch, matplotlib) inside its functions, so building the parser stays cheap.
 _COMMAND_MODULES = {
     "serve": "app.api.cli",
     "openapi": "app.api.cli",
