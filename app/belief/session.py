@@ -33,6 +33,7 @@ from app.belief import fusion
 from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_MAX_VOXELS, DEFAULT_VOXEL_SIZE_M, VoxelGrid
 from app.belief.summary import ON_MARGIN_M, PosteriorSummary, summarize
 from app.errors import Conflict, InvalidInput, LimitExceeded
+from app.grounding.lexical import singular
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
 
@@ -75,24 +76,12 @@ _CAMEL = re.compile(r"(?<=[a-z0-9])(?=[A-Z])")
 _SEPARATORS = re.compile(r"[\s_\-/.]+")
 
 
-def _singular(word: str) -> str:
-    if len(word) > 4 and word.endswith("ies"):
-        return word[:-3] + "y"
-    if len(word) > 5 and word.endswith("lves"):  # shelves, halves
-        return word[:-3] + "f"
-    if word.endswith(("sses", "ches", "shes", "xes")):
-        return word[:-2]
-    if len(word) > 3 and word.endswith("s") and not word.endswith(("ss", "us", "is")):
-        return word[:-1]
-    return word
-
-
 def label_key(name: str) -> str:
     """The key two label names share when they name the same class (see the module docstring)."""
     words = _SEPARATORS.sub(" ", _CAMEL.sub(" ", name)).lower().split()
     if not words:
         return ""
-    phrase = " ".join([*words[:-1], _singular(words[-1])])
+    phrase = " ".join([*words[:-1], singular(words[-1])])
     phrase = _SYNONYMS.get(phrase, _SYNONYMS.get(phrase.replace(" ", ""), phrase))
     return phrase.replace(" ", "")
 

@@ -15,7 +15,14 @@ from app.grounding.parsing import normalise, parse_utterance
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, SceneObject
 
-_IRREGULAR_PLURALS = {"shelves": "shelf", "knives": "knife", "leaves": "leaf", "people": "person"}
+_IRREGULAR_PLURALS = {
+    "shelves": "shelf",
+    "halves": "half",
+    "knives": "knife",
+    "leaves": "leaf",
+    "wolves": "wolf",
+    "people": "person",
+}
 
 
 def singular(word: str) -> str:
