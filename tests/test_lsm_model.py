@@ -17,6 +17,7 @@ from scipy.stats import multivariate_normal
 
 from app.data.cases import read_cases
 from app.errors import NotFound
+from app.evaluation.metrics import anees, nees
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.relations import Relation
 from app.lsm.features import PackedSamples, label_text, make_sample, pair_features
@@ -31,7 +32,7 @@ from app.lsm.model import (
     save_checkpoint,
 )
 from app.lsm.text_encoder import MINILM_SHA256, TextEncoder, file_sha256
-from app.lsm.train import predict
+from app.lsm.train import apply_calibration, fit_calibration, predict
 
 CASES = Path(__file__).parent / "resources" / "lsm" / "cases.jsonl"
 TINY = {
@@ -201,11 +202,14 @@ def test_make_sample_keeps_anchors_first_and_the_nearest_objects(cases):
     kept_others = np.min(np.linalg.norm(anchors[None] - sample.centers[2:, None], axis=-1), axis=1)
     dropped = np.sort(dist)[cfg.max_objects :]
     assert kept_others.max() <= dropped.min()
-    # The region frame: centred on the anchors' joint box, with the margin added to its half-extent.
-    low = np.min([case.scene_graph.object(i).min_corner for i in truth.anchor_ids], axis=0)
-    high = np.max([case.scene_graph.object(i).max_corner for i in truth.anchor_ids], axis=0)
-    np.testing.assert_allclose(sample.region_shift, 0.5 * (low + high), atol=1e-6)
-    np.testing.assert_allclose(sample.region_scale, 0.5 * (high - low) + [1.0, 1.0, 1.5], atol=1e-6)
+    # The region frame: centred on the anchors' midpoint, reaching the margin beyond their joint box.
+    sofa, tv_stand = (case.scene_graph.object(i) for i in truth.anchor_ids)
+    midpoint = 0.5 * (np.asarray(sofa.center) + np.asarray(tv_stand.center))
+    np.testing.assert_allclose(sample.region_shift, midpoint, atol=1e-6)
+    low = np.minimum(sofa.min_corner, tv_stand.min_corner)
+    high = np.maximum(sofa.max_corner, tv_stand.max_corner)
+    reach = np.maximum(high - midpoint, midpoint - low) + np.array([1.0, 1.0, 1.5])
+    np.testing.assert_allclose(sample.region_scale, reach, atol=1e-5)
 
 
 def test_ordinal_relations_get_a_scene_wide_frame(cases):
@@ -323,3 +327,25 @@ def test_shipped_model_grounds_every_relation(encoder, cases):
         assert np.all(np.linalg.eigvalsh(g.covariance) > 0)
         anchors = np.array([case.scene_graph.object(i).center for i in truth.anchor_ids])
         assert np.linalg.norm(g.mean - anchors.mean(axis=0)) < 3.0
+
+
+def test_fit_calibration_brings_anees_to_three_and_shrinks_small_relations():
+    rng = np.random.default_rng(5)
+    n_big, n_small = 4000, 10
+    relations = ["near"] * n_big + ["in"] * n_small
+    n = n_big + n_small
+    true_cov = np.diag([0.2, 0.1, 0.05])
+    targets = rng.multivariate_normal(np.zeros(3), true_cov, size=n)
+    means = np.zeros((n, 3))
+    covs = np.tile(true_cov / 4.0, (n, 1, 1))  # 4x overconfident
+    covs[n_big:] *= 0.25  # "in" 16x overconfident, but only 10 cases
+    calibration = fit_calibration(means, covs, targets, relations, prior_cases=50.0)
+    assert calibration["per_relation"]["near"] == pytest.approx(4.0, rel=0.05)
+    scaled = apply_calibration(covs, relations, calibration)
+    assert anees(means[:n_big], scaled[:n_big], targets[:n_big]) == pytest.approx(3.0, rel=0.05)
+    # "in": own estimate ~16, pooled ~4; shrunk with 10 own cases against 50 pooled pseudo-cases.
+    own = nees(means[n_big:], covs[n_big:], targets[n_big:]).mean() / 3.0
+    pooled = calibration["overall"]
+    expected = (10 * own + 50 * pooled) / 60
+    assert calibration["per_relation"]["in"] == pytest.approx(expected)
+    assert pooled < calibration["per_relation"]["in"] < own

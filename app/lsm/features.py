@@ -7,8 +7,12 @@ geometry features on the fly. The text encoder is frozen, so embeddings are look
 
 The anchor region frame (s, t) is where the model's output lives (mu_w = s * tanh(.) + t):
 
-    t = centre of the anchors' joint axis-aligned box,
-    s = max(joint half-extent + (m_xy, m_xy, m_z), s_min)          (per axis, metres)
+    t = mean of the anchors' centres (the midpoint for "between"),
+    s = max(max(high - t, t - low) + (m_xy, m_xy, m_z), s_min)     (per axis, metres)
+
+with [low, high] the anchors' joint axis-aligned box, so t +- s holds every anchor plus the margin. For one
+anchor this is its centre and half-extent + margin. mu = 0 (the head's initial output) is the anchor's centre,
+or the midpoint between the two anchors.
 
 The margin is relation-independent: "near" targets (within 0.6 m of the anchor's surface in the case builder)
 and "between" targets stay well inside, and m_z = 1.5 m reaches objects hanging up to 1.5 m above or below
@@ -30,7 +34,7 @@ import torch
 from app.errors import NotFound
 from app.grounding.relations import Relation
 from app.lsm.model import RELATION_INDEX, ROLE_ANCHOR, ROLE_OTHER, LSMBatch, LSMConfig
-from app.scene_graph.model import SceneGraph, SceneObject
+from app.scene_graph.model import SceneGraph
 
 Embed = Callable[[Sequence[str]], np.ndarray]
 ORDINAL_RELATIONS = (Relation.CLOSEST, Relation.FARTHEST)
@@ -56,79 +60,119 @@ class Sample:
     region_shift: np.ndarray  # (3,) t
     region_scale: np.ndarray  # (3,) s
     floor_z: float
+    scene_low: np.ndarray  # (3,) corners of the scene's bounding box
+    scene_high: np.ndarray  # (3,)
     target: np.ndarray | None = None  # (3,)
 
 
+@dataclass(frozen=True)
+class SceneArrays:
+    """A scene graph as arrays, computed once per scene and shared by all of its hypotheses."""
+
+    ids: tuple[str, ...]
+    labels: tuple[str, ...]  # embedding texts (label_text)
+    centers: np.ndarray  # (M, 3)
+    sizes: np.ndarray  # (M, 3) extents of the axis-aligned boxes (yaw included)
+    bounds: tuple[np.ndarray, np.ndarray]  # scene's (low, high) corners, objects and regions
+    floor_z: float  # 10th percentile of object bottoms: most furniture stands on the floor
+
+    @classmethod
+    def of(cls, scene_graph: SceneGraph) -> SceneArrays:
+        objects = scene_graph.objects
+        centers = np.array([o.center for o in objects], dtype=np.float64).reshape(-1, 3)
+        sizes = np.array([2.0 * o.half_extent for o in objects], dtype=np.float64).reshape(-1, 3)
+        bottoms = centers[:, 2] - 0.5 * sizes[:, 2]
+        return cls(
+            ids=tuple(o.id for o in objects),
+            labels=tuple(label_text(o.label) for o in objects),
+            centers=centers,
+            sizes=sizes,
+            bounds=scene_graph.bounds(),
+            floor_z=float(np.percentile(bottoms, 10)) if len(objects) else 0.0,
+        )
+
+
 def region_frame(
-    anchors: Sequence[SceneObject],
+    centers: np.ndarray,
+    sizes: np.ndarray,
     relation: Relation,
     cfg: LSMConfig,
     scene_bounds: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(t, s): t the centre of the anchors' joint box, s = max(half-extent + margin, s_min) per axis.
+    """(t, s) of the anchors' boxes, centers and sizes (A, 3): see the module docstring.
 
     For closest/farthest (with `cfg.ordinal_scene_frame` and `scene_bounds` given), s is at least the distance
     from t to the farther face of the scene's bounding box on each axis.
     """
-    low = np.min([a.min_corner for a in anchors], axis=0)
-    high = np.max([a.max_corner for a in anchors], axis=0)
+    low = np.min(centers - 0.5 * sizes, axis=0)
+    high = np.max(centers + 0.5 * sizes, axis=0)
     margin = np.array([cfg.region_margin_xy, cfg.region_margin_xy, cfg.region_margin_z])
-    shift = 0.5 * (low + high)
-    scale = np.maximum(0.5 * (high - low) + margin, cfg.region_min_half_extent)
+    shift = centers.mean(axis=0)
+    scale = np.maximum(np.maximum(high - shift, shift - low) + margin, cfg.region_min_half_extent)
     if cfg.ordinal_scene_frame and scene_bounds is not None and relation in ORDINAL_RELATIONS:
         scene_low, scene_high = scene_bounds
         scale = np.maximum(scale, np.maximum(shift - scene_low, scene_high - shift))
     return shift, scale
 
 
-def floor_height(scene_graph: SceneGraph) -> float:
-    """The floor's height: the 10th percentile of object bottoms (most furniture stands on the floor)."""
-    if not scene_graph.objects:
-        return 0.0
-    bottoms = [o.min_corner[2] for o in scene_graph.objects]
-    return float(np.percentile(bottoms, 10))
-
-
 def make_sample(
-    scene_graph: SceneGraph,
+    scene: SceneGraph | SceneArrays,
     anchor_ids: Sequence[str],
     relation: Relation,
     utterance: str,
     cfg: LSMConfig,
     target: Sequence[float] | None = None,
-    floor_z: float | None = None,
 ) -> Sample:
     """Keep the anchors and the `max_objects - len(anchors)` objects nearest to any anchor's centre."""
-    by_id = {o.id: o for o in scene_graph.objects}
-    missing = [i for i in anchor_ids if i not in by_id]
+    arrays = scene if isinstance(scene, SceneArrays) else SceneArrays.of(scene)
+    row = {object_id: k for k, object_id in enumerate(arrays.ids)}
+    missing = [i for i in anchor_ids if i not in row]
     if missing or not anchor_ids:
         msg = f"anchor object ids {missing or list(anchor_ids)} are not in the scene graph"
         raise NotFound(msg)
-    anchors = [by_id[i] for i in dict.fromkeys(anchor_ids)]
-    anchor_set = {a.id for a in anchors}
-    others = [o for o in scene_graph.objects if o.id not in anchor_set]
+    anchors = np.array([row[i] for i in dict.fromkeys(anchor_ids)])  # (A,)
+    others = np.setdiff1d(np.arange(len(arrays.ids)), anchors)  # (M - A,) in scene order
     n_others = max(cfg.max_objects - len(anchors), 0)
-    if others and len(others) > n_others:
-        anchor_centers = np.array([a.center for a in anchors])  # (A, 3)
-        other_centers = np.array([o.center for o in others])  # (M, 3)
-        dist = np.linalg.norm(other_centers[:, None, :] - anchor_centers[None, :, :], axis=-1).min(
-            axis=1
-        )  # (M,)
-        others = [others[i] for i in np.argsort(dist, kind="stable")[:n_others]]
-    kept = anchors + others
-    shift, scale = region_frame(anchors, Relation(relation), cfg, scene_graph.bounds())
+    if len(others) > n_others:
+        diff = arrays.centers[others][:, None, :] - arrays.centers[anchors][None, :, :]  # (M - A, A, 3)
+        dist = np.linalg.norm(diff, axis=-1).min(axis=1)  # (M - A,)
+        others = others[np.argsort(dist, kind="stable")[:n_others]]
+    kept = np.concatenate([anchors, others])
+    shift, scale = region_frame(
+        arrays.centers[anchors], arrays.sizes[anchors], Relation(relation), cfg, arrays.bounds
+    )
     return Sample(
         utterance=utterance,
-        labels=tuple(label_text(o.label) for o in kept),
-        centers=np.array([o.center for o in kept], dtype=np.float32),
-        sizes=np.array([2.0 * o.half_extent for o in kept], dtype=np.float32),
+        labels=tuple(arrays.labels[k] for k in kept),
+        centers=arrays.centers[kept].astype(np.float32),
+        sizes=arrays.sizes[kept].astype(np.float32),
         roles=np.array([ROLE_ANCHOR] * len(anchors) + [ROLE_OTHER] * len(others), dtype=np.int64),
         relation=RELATION_INDEX[Relation(relation)],
         region_shift=shift.astype(np.float32),
         region_scale=scale.astype(np.float32),
-        floor_z=floor_height(scene_graph) if floor_z is None else floor_z,
+        floor_z=arrays.floor_z,
+        scene_low=arrays.bounds[0].astype(np.float32),
+        scene_high=arrays.bounds[1].astype(np.float32),
         target=None if target is None else np.asarray(target, dtype=np.float32),
     )
+
+
+def object_features(
+    centers: torch.Tensor,
+    sizes: torch.Tensor,
+    shift: torch.Tensor,
+    scale: torch.Tensor,
+    floor_z: torch.Tensor,
+    label_emb: torch.Tensor,
+    text_emb: torch.Tensor,
+) -> torch.Tensor:
+    """[12-d geometry, cos(label, utterance)] per object; label_emb (B, N, E), text_emb (B, E) -> (B, N, 13).
+
+    The cosine between an object's label and the utterance (both unit vectors) marks the objects the sentence
+    talks about, e.g. the other chairs when the target is "the chair farthest from the door".
+    """
+    relevance = torch.einsum("bne,be->bn", label_emb, text_emb)[..., None]  # (B, N, 1)
+    return torch.cat([object_geometry(centers, sizes, shift, scale, floor_z), relevance], dim=-1)
 
 
 def object_geometry(
@@ -184,12 +228,23 @@ def pair_features(
     )  # (B, N, N, 12)
 
 
-def region_condition(shift: torch.Tensor, scale: torch.Tensor, floor_z: torch.Tensor) -> torch.Tensor:
-    """What the head's FiLM sees of (s, t): [log s (3), t_z - floor (1)]; (B, 3), (B, 3), (B,) -> (B, 4).
+def region_condition(
+    shift: torch.Tensor,
+    scale: torch.Tensor,
+    floor_z: torch.Tensor,
+    scene_low: torch.Tensor,
+    scene_high: torch.Tensor,
+) -> torch.Tensor:
+    """What the head's FiLM sees of (s, t) and the room around it; (B, 3) x 2, (B,), (B, 3) x 2 -> (B, 10).
 
-    The horizontal part of t is left out on purpose: a map frame's x, y origin carries no meaning.
+    [log s (3), t_z - floor (1), (scene centre - t) / s (3), scene half-extent / s (3)]. The absolute x, y of
+    t are left out on purpose (a map frame's origin carries no meaning); where the room lies relative to the
+    anchors does ("farthest from the door" points across the room).
     """
-    return torch.cat([torch.log(scale), (shift[:, 2] - floor_z)[:, None]], dim=-1)
+    centre, half = 0.5 * (scene_low + scene_high), 0.5 * (scene_high - scene_low)  # (B, 3)
+    return torch.cat(
+        [torch.log(scale), (shift[:, 2] - floor_z)[:, None], (centre - shift) / scale, half / scale], dim=-1
+    )
 
 
 class PackedSamples:
@@ -222,6 +277,8 @@ class PackedSamples:
         self.shift = torch.from_numpy(np.stack([s.region_shift for s in samples]))  # (S, 3)
         self.scale = torch.from_numpy(np.stack([s.region_scale for s in samples]))  # (S, 3)
         self.floor_z = torch.tensor([s.floor_z for s in samples], dtype=torch.float32)  # (S,)
+        self.scene_low = torch.from_numpy(np.stack([s.scene_low for s in samples]))  # (S, 3)
+        self.scene_high = torch.from_numpy(np.stack([s.scene_high for s in samples]))  # (S, 3)
         targets = [s.target for s in samples if s.target is not None]
         self.target = torch.from_numpy(np.stack(targets)) if len(targets) == len(samples) else None  # (S, 3)
 
@@ -235,17 +292,21 @@ class PackedSamples:
         n = max(int(mask.sum(dim=1).max()), 1)
         centers, sizes = self.centers[index][:, :n], self.sizes[index][:, :n]  # (B, n, 3)
         shift, scale, floor_z = self.shift[index], self.scale[index], self.floor_z[index]
+        text_emb = self.embeddings[self.text_index[index]]  # (B, E)
+        label_emb = self.embeddings[self.label_index[index][:, :n]]  # (B, n, E)
         return LSMBatch(
-            text_emb=self.embeddings[self.text_index[index]],
-            label_emb=self.embeddings[self.label_index[index][:, :n]],
-            geometry=object_geometry(centers, sizes, shift, scale, floor_z),
+            text_emb=text_emb,
+            label_emb=label_emb,
+            object_features=object_features(centers, sizes, shift, scale, floor_z, label_emb, text_emb),
             pair=pair_features(centers, sizes, shift, scale),
             roles=self.roles[index][:, :n],
             mask=mask[:, :n],
             relation=self.relation[index],
             region_shift=shift,
             region_scale=scale,
-            region_cond=region_condition(shift, scale, floor_z),
+            region_cond=region_condition(
+                shift, scale, floor_z, self.scene_low[index], self.scene_high[index]
+            ),
             target=None if self.target is None else self.target[index],
         )
 

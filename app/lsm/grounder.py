@@ -18,7 +18,7 @@ from app.errors import ModelUnavailable
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.mixture import Gaussian, project_to_pd
 from app.grounding.relations import Relation
-from app.lsm.features import PackedSamples, floor_height, make_sample
+from app.lsm.features import PackedSamples, SceneArrays, make_sample
 from app.lsm.model import CONFIG_NAME, WEIGHTS_NAME, LanguageSensorModel, load_checkpoint
 from app.lsm.text_encoder import TextEncoder, file_sha256
 from app.scene_graph.model import SceneGraph
@@ -77,11 +77,8 @@ class LSMGrounder:
         if not hypotheses:
             return []
         cfg = self.model.cfg
-        floor_z = floor_height(scene_graph)
-        samples = [
-            make_sample(scene_graph, h.anchor_ids, h.relation, utterance, cfg, floor_z=floor_z)
-            for h in hypotheses
-        ]
+        scene = SceneArrays.of(scene_graph)
+        samples = [make_sample(scene, h.anchor_ids, h.relation, utterance, cfg) for h in hypotheses]
         batch = PackedSamples(samples, self.encoder.encode).batch()
         with torch.inference_mode():
             out = self.model(batch)

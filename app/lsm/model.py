@@ -41,9 +41,9 @@ class LSMConfig:
     """Every size of the model and of its input features. Defaults are the reference's sizes."""
 
     text_dim: int = 384  # frozen MiniLM sentence embedding (utterance and object labels)
-    geometry_dim: int = 12  # per-object geometry feature, see features.object_geometry
+    object_feature_dim: int = 13  # 12-d geometry + cosine(label, utterance), see features.object_features
     pair_dim: int = 12  # anchor-centric pair feature, see features.pair_features
-    region_cond_dim: int = 4  # log s (3) and the region centre's height above the floor (1)
+    region_cond_dim: int = 10  # features.region_condition: s, t's height, where the room lies around t
     n_relations: int = len(Relation)
     d_model: int = 256
     n_heads: int = 8
@@ -58,6 +58,7 @@ class LSMConfig:
     head_dropout: float = 0.15
     sigma_floor: float = 0.05  # on L's diagonal, in region units (world: 0.05 * s)
     relation_embedding: bool = True  # deviation from the reference: the relation also enters explicitly
+    relation_prior: bool = True  # deviation: per-relation affine map region_cond -> head output
     l1_weight: float = 1.0
     # Input features (they define the output frame, so they travel with the weights).
     max_objects: int = 150  # nearest to the anchor(s), anchors always kept
@@ -82,7 +83,7 @@ class LSMBatch:
 
     text_emb: torch.Tensor  # (B, E) utterance embedding
     label_emb: torch.Tensor  # (B, N, E) object label embeddings
-    geometry: torch.Tensor  # (B, N, G)
+    object_features: torch.Tensor  # (B, N, F)
     pair: torch.Tensor  # (B, N, N, P)
     roles: torch.Tensor  # (B, N) long: ROLE_ANCHOR or ROLE_OTHER
     mask: torch.Tensor  # (B, N) bool, True for real objects
@@ -135,7 +136,9 @@ class LanguageSensorModel(nn.Module):
         dim = cfg.d_model
         self.text_proj = nn.Linear(cfg.text_dim, dim)
         self.label_proj = nn.Linear(cfg.text_dim, dim)
-        self.geometry_proj = nn.Sequential(nn.Linear(cfg.geometry_dim, dim), nn.GELU(), nn.Linear(dim, dim))
+        self.feature_proj = nn.Sequential(
+            nn.Linear(cfg.object_feature_dim, dim), nn.GELU(), nn.Linear(dim, dim)
+        )
         self.role_emb = nn.Embedding(3, dim)  # target-query / anchor / other
         self.modality_emb = nn.Embedding(2, dim)  # text / object
         self.relation_emb = nn.Embedding(cfg.n_relations, dim) if cfg.relation_embedding else None
@@ -151,6 +154,11 @@ class LanguageSensorModel(nn.Module):
         self.region_film = nn.Sequential(
             nn.Linear(cfg.region_cond_dim, cfg.film_hidden), nn.GELU(), nn.Linear(cfg.film_hidden, 2 * dim)
         )
+        # Deviation: a per-relation affine map of the region condition added to the head's output. The
+        # shared head did not learn relation-specific displacements such as "farthest" -> across the room.
+        self.relation_prior = (
+            nn.Linear(cfg.region_cond_dim, 9 * cfg.n_relations) if cfg.relation_prior else None
+        )
         self.head = nn.Sequential(
             nn.Linear(dim, cfg.head_hidden1),
             nn.GELU(),
@@ -162,7 +170,9 @@ class LanguageSensorModel(nn.Module):
         )
         self.apply(self._init_weights)
         # Start every FiLM at identity and every prediction at (mu = t, L = (softplus(0) + floor) I).
-        for layer in (self.pair_film, self.region_film[-1], self.head[-1]):
+        for layer in (self.pair_film, self.region_film[-1], self.head[-1], self.relation_prior):
+            if layer is None:
+                continue
             assert isinstance(layer, nn.Linear)
             nn.init.zeros_(layer.weight)
             nn.init.zeros_(layer.bias)
@@ -183,7 +193,7 @@ class LanguageSensorModel(nn.Module):
             text = text + self.relation_emb(batch.relation)
         objects = (
             self.label_proj(batch.label_emb)
-            + self.geometry_proj(batch.geometry)
+            + self.feature_proj(batch.object_features)
             + self.role_emb(batch.roles)
             + self.modality_emb.weight[1]
         )  # (B, N, D)
@@ -215,6 +225,9 @@ class LanguageSensorModel(nn.Module):
 
         scale, shift = self.region_film(batch.region_cond).chunk(2, dim=-1)  # (B, D) each
         out = self.head(pooled * (1.0 + scale) + shift)  # (B, 9)
+        if self.relation_prior is not None:
+            prior = self.relation_prior(batch.region_cond).view(bsz, cfg.n_relations, 9)  # (B, R, 9)
+            out = out + prior[torch.arange(bsz), batch.relation]  # (B, 9)
         mean = torch.tanh(out[:, :3])  # (B, 3) region frame
         diag = F.softplus(out[:, 3:6]) + cfg.sigma_floor  # (B, 3)
         zero = torch.zeros_like(diag[:, 0])
