@@ -96,12 +96,14 @@ class _Calls:
         return Request("POST", f"/v1/sessions/{session_id}/utterances", {"json": body})
 
     @staticmethod
-    def send_observations(session_id: str, **batch: Any) -> Request:
-        content = encode_msgpack_batch(**batch)
-        headers = {"content-type": "application/msgpack"}
-        return Request(
-            "POST", f"/v1/sessions/{session_id}/observations", {"content": content, "headers": headers}
-        )
+    def send_observations(session_id: str, summary: bool = True, **batch: Any) -> Request:
+        kwargs: dict[str, Any] = {
+            "content": encode_msgpack_batch(**batch),
+            "headers": {"content-type": "application/msgpack"},
+        }
+        if not summary:
+            kwargs["params"] = {"summary": "false"}
+        return Request("POST", f"/v1/sessions/{session_id}/observations", kwargs)
 
     @staticmethod
     def get_belief(session_id: str, etag: str | None, top_k: int) -> Request:
@@ -196,9 +198,12 @@ class VLMapClient:
     def send_utterance(self, session_id: str, utterance: str, options: dict[str, Any] | None = None) -> dict:
         return _json(self._send(_Calls.send_utterance(session_id, utterance, options)))
 
-    def send_observations(self, session_id: str, **batch: Any) -> dict[str, Any]:
-        """batch: voxels (N,3) or points (N,3); labels (N,) ids or names, or p_target (N,); stamp, tp, fp."""
-        return _json(self._send(_Calls.send_observations(session_id, **batch)))
+    def send_observations(self, session_id: str, summary: bool = True, **batch: Any) -> dict[str, Any]:
+        """batch: voxels (N,3) or points (N,3); labels (N,) ids or names, or p_target (N,); stamp, tp, fp.
+
+        summary=False leaves the posterior summary out of the answer (sensor-rate streams poll it apart).
+        """
+        return _json(self._send(_Calls.send_observations(session_id, summary, **batch)))
 
     def get_belief(
         self, session_id: str, etag: str | None = None, top_k: int = 5
@@ -255,8 +260,8 @@ class AsyncVLMapClient:
     ) -> dict:
         return _json(await self._send(_Calls.send_utterance(session_id, utterance, options)))
 
-    async def send_observations(self, session_id: str, **batch: Any) -> dict[str, Any]:
-        return _json(await self._send(_Calls.send_observations(session_id, **batch)))
+    async def send_observations(self, session_id: str, summary: bool = True, **batch: Any) -> dict[str, Any]:
+        return _json(await self._send(_Calls.send_observations(session_id, summary, **batch)))
 
     async def get_belief(
         self, session_id: str, etag: str | None = None, top_k: int = 5

@@ -118,7 +118,8 @@ class Fleet:
                 log.sent.append(flat)
                 labels = ["backpack"] * len(flat)
                 result = await self._call(
-                    "POST /observations", client.send_observations(log.session_id, voxels=ijk, labels=labels)
+                    "POST /observations",
+                    client.send_observations(log.session_id, summary=False, voxels=ijk, labels=labels),
                 )
                 log.acked.append(result is not None)
                 step += 1

@@ -317,3 +317,11 @@ def test_idle_sessions_expire_and_are_purged(two_rooms: dict, settings: Any) -> 
         assert client.get("/v1/sessions").json()["sessions"] == []
         store = client.app.state.services.store  # type: ignore[attr-defined]
         assert store.purge_expired() == 0  # the background task already freed it
+
+
+def test_sensor_rate_batches_may_skip_the_summary(client: TestClient, two_rooms: dict) -> None:
+    sid = _create(client, two_rooms, target_label="backpack")["id"]
+    batch = {"voxels": [[1, 1, 1]], "labels": ["chair"]}
+    body = client.post(f"/v1/sessions/{sid}/observations", params={"summary": "false"}, json=batch).json()
+    assert body["belief"] is None and body["version"] == 1
+    assert client.post(f"/v1/sessions/{sid}/observations", json=batch).json()["belief"]["version"] == 2

@@ -290,4 +290,6 @@ class ObservationOut(BaseModel):
     stamp: float | None
     voxels_updated: int
     voxels_outside: int = Field(description="Voxels or points outside the grid: counted and skipped.")
-    belief: BeliefOut
+    belief: BeliefOut | None = Field(
+        description="The posterior summary after this batch (null with summary=false)."
+    )

@@ -337,7 +337,12 @@ def decode_json_batch(raw: bytes, max_voxels: int) -> ObservationBatch:
 
 
 def add_observations(
-    store: SessionStore, cache: SummaryCache, principal: Principal, session_id: str, batch: ObservationBatch
+    store: SessionStore,
+    cache: SummaryCache,
+    principal: Principal,
+    session_id: str,
+    batch: ObservationBatch,
+    with_summary: bool = True,
 ) -> ObservationOut:
     """Map voxels to flat indices (out-of-grid ones counted, not fatal), then fuse the batch."""
     info = _writable(store, principal, session_id)
@@ -358,7 +363,7 @@ def add_observations(
         result = store.apply_observations(
             session_id, batch.labels[keep], points=points, flat_idx=flat_idx, tp=batch.tp, fp=batch.fp
         )
-    belief = belief_out(store, cache, session_id)
+    belief = belief_out(store, cache, session_id) if with_summary else None
     return ObservationOut(
         version=result.version,
         stamp=batch.stamp,
@@ -382,6 +387,10 @@ async def post_observations(
     store: StoreDep,
     settings: SettingsDep,
     services: ServicesDep,
+    summary: Annotated[
+        bool,
+        Query(description="Return the posterior summary (false: just the version, for sensor-rate streams)."),
+    ] = True,
 ) -> ObservationOut:
     """Fuse one batch of semantic observations (JSON or msgpack) and return the posterior summary."""
     raw = await request.body()
@@ -393,7 +402,9 @@ async def post_observations(
     else:
         msg = f"unsupported content type {content_type!r}: send application/json or application/msgpack"
         raise UnsupportedMediaType(msg, field="content-type")
-    return await services.run(add_observations, store, services.summaries, principal, session_id, batch)
+    return await services.run(
+        add_observations, store, services.summaries, principal, session_id, batch, summary
+    )
 
 
 def belief_grid(store: SessionStore, info: SessionInfo, layers: bool) -> tuple[bytes, int]:
