@@ -21,7 +21,7 @@ class Settings(BaseSettings):
     port: int = Field(default=8000, ge=1, le=65535)
 
     grounder: Literal["lsm", "geometric", "fixed"] = Field(
-        default="geometric", description="Default spatial grounder; requests may pick another loaded one."
+        default="lsm", description="Default spatial grounder (the shipped LSM); requests may pick others."
     )
     proposer: Literal["builtin", "lexical"] = Field(
         default="builtin",
@@ -79,6 +79,9 @@ class Settings(BaseSettings):
 
     log_level: str = "INFO"
     log_json: bool = Field(default=True, description="One JSON object per log line (false: plain text).")
+    torch_threads: int = Field(
+        default=1, ge=1, description="Threads per LSM forward pass (requests run in parallel across workers)."
+    )
     worker_threads: int = Field(default=8, ge=1, description="Threads for CPU-bound work off the event loop.")
 
 

@@ -71,6 +71,9 @@ def test_the_default_service_uses_the_calibrated_builtin_proposer(scene_graph_di
         proposers = [m for m in client.get("/v1/models").json()["models"] if m["role"] == "proposer"]
         body = {"scene_graph": scene_graph_dict, "utterance": "I left my backpack on the table"}
         answer = client.post("/v1/ground", json=body).json()
+    grounders = [m["name"] for m in client.get("/v1/models").json()["models"] if m["role"] == "grounder"]
+    assert grounders == ["lsm", "fixed", "geometric"]  # the shipped LSM first: the default
+    assert answer["model"]["name"] == "lsm"
     assert [p["name"] for p in proposers] == ["builtin"]
     assert proposers[0]["checksum"].startswith("sha256:")
     weights = [h["weight"] for h in answer["hypotheses"]]

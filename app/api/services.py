@@ -77,7 +77,9 @@ def build_sensors(settings: Settings, metrics: Metrics) -> Sensors:
             from app.lsm.grounder import LSMGrounder
             from app.lsm.text_encoder import default_text_encoder
 
-            grounders[name] = LSMGrounder.load(settings.model_dir / "lsm", encoder=default_text_encoder())
+            grounders[name] = LSMGrounder.load(
+                settings.model_dir / "lsm", threads=settings.torch_threads, encoder=default_text_encoder()
+            )
     builtin = build_proposer(settings)
     proposers: dict[str, HypothesisProposer] = {"builtin": builtin}
     if settings.llm_url:
