@@ -20,7 +20,7 @@ from app.errors import NotFound
 from app.evaluation.metrics import anees, nees
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.relations import Relation
-from app.lsm.features import PackedSamples, label_text, make_sample, pair_features
+from app.lsm.features import PackedSamples, SceneArrays, label_text, make_sample, pair_features
 from app.lsm.grounder import DEFAULT_MODEL_DIR, LSMGrounder
 from app.lsm.model import (
     ROLE_ANCHOR,
@@ -33,6 +33,7 @@ from app.lsm.model import (
 )
 from app.lsm.text_encoder import MINILM_SHA256, TextEncoder, file_sha256
 from app.lsm.train import apply_calibration, fit_calibration, predict
+from app.scene_graph.model import SceneGraph
 
 CASES = Path(__file__).parent / "resources" / "lsm" / "cases.jsonl"
 TINY = {
@@ -349,3 +350,17 @@ def test_fit_calibration_brings_anees_to_three_and_shrinks_small_relations():
     expected = (10 * own + 50 * pooled) / 60
     assert calibration["per_relation"]["in"] == pytest.approx(expected)
     assert pooled < calibration["per_relation"]["in"] < own
+
+
+def test_scene_arrays_match_the_scene_graph():
+    """Bounds (objects and regions), boxes and floor height on a real 60-object ScanNet room."""
+    scene_file = Path(__file__).parent / "resources" / "scenes" / "scannet_scene0590_00.json"
+    scene_graph = SceneGraph.model_validate_json(scene_file.read_text(encoding="utf-8"))
+    assert scene_graph.regions
+    arrays = SceneArrays.of(scene_graph)
+    low, high = scene_graph.bounds()
+    np.testing.assert_allclose(arrays.bounds[0], low)
+    np.testing.assert_allclose(arrays.bounds[1], high)
+    np.testing.assert_allclose(arrays.sizes, [2.0 * o.half_extent for o in scene_graph.objects])
+    bottoms = [o.min_corner[2] for o in scene_graph.objects]
+    assert arrays.floor_z == pytest.approx(np.percentile(bottoms, 10))

@@ -82,12 +82,20 @@ class SceneArrays:
         centers = np.array([o.center for o in objects], dtype=np.float64).reshape(-1, 3)
         sizes = np.array([2.0 * o.half_extent for o in objects], dtype=np.float64).reshape(-1, 3)
         bottoms = centers[:, 2] - 0.5 * sizes[:, 2]
+        if scene_graph.regions:  # SceneGraph.bounds() without recomputing every object's extent
+            region_centers = np.array([r.center for r in scene_graph.regions], dtype=np.float64)
+            region_half = 0.5 * np.array([r.size for r in scene_graph.regions], dtype=np.float64)
+            lows = np.concatenate([centers - 0.5 * sizes, region_centers - region_half])
+            highs = np.concatenate([centers + 0.5 * sizes, region_centers + region_half])
+        else:
+            lows, highs = centers - 0.5 * sizes, centers + 0.5 * sizes
+        bounds = (lows.min(axis=0), highs.max(axis=0)) if len(lows) else scene_graph.bounds()
         return cls(
             ids=tuple(o.id for o in objects),
             labels=tuple(label_text(o.label) for o in objects),
             centers=centers,
             sizes=sizes,
-            bounds=scene_graph.bounds(),
+            bounds=bounds,
             floor_z=float(np.percentile(bottoms, 10)) if len(objects) else 0.0,
         )
 
