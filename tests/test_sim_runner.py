@@ -265,7 +265,13 @@ def reference_vision_masses(prepared: PreparedEpisode, config: SimConfig) -> lis
 
 @pytest.fixture(scope="module")
 def service_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    env = {"VLMAP_DATA_DIR": str(tmp_path_factory.mktemp("sessions")), "VLMAP_RATE_LIMIT_PER_S": "0"}
+    env = {
+        "VLMAP_DATA_DIR": str(tmp_path_factory.mktemp("sessions")),
+        "VLMAP_RATE_LIMIT_PER_S": "0",
+        # The model-free grounders only, so that a method needing the LSM is refused by name.
+        "VLMAP_GROUNDER": "geometric",
+        "VLMAP_GROUNDERS": '["fixed"]',
+    }
     with running_service(env) as url:
         yield url
 
@@ -284,7 +290,7 @@ def test_vision_only_masses_match_a_reference_fusion(service_url: str) -> None:
 
 def test_missing_grounders_and_proposers_are_named(service_url: str) -> None:
     with VLMapClient(service_url) as client:
-        assert available_models(client, "grounder") == ["geometric", "fixed"]  # the service's defaults
+        assert available_models(client, "grounder") == ["geometric", "fixed"]  # as the fixture configured
         check_service(client, ["vision-only", "geometric", "fixed"])
         with pytest.raises(SimError, match=r"grounders \['lsm'\].*models/lsm"):
             check_service(client, ["vision-only", "lsm"])
