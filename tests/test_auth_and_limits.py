@@ -24,6 +24,7 @@ def _settings(**overrides: object) -> Settings:
         {"name": "dashboard", "role": "viewer", "sha256": digest(KEYS["viewer"])},
         {"name": "robot-7", "role": "robot", "sha256": digest(KEYS["robot"]), "robot_ids": ["r7"]},
     ]
+    overrides.setdefault("data_dir", None)  # never the repository's var/sessions
     return Settings(_env_file=None, log_json=False, api_keys=json.dumps(records), **overrides)  # type: ignore[call-arg]
 
 

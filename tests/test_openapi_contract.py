@@ -10,7 +10,7 @@ import pytest
 import schemathesis
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, settings
-from schemathesis.specs.openapi.checks import positive_data_acceptance
+from schemathesis.specs.openapi.checks import negative_data_rejection, positive_data_acceptance
 
 from app.api.app import create_app
 from app.api.auth import digest, new_key
@@ -74,7 +74,10 @@ def test_api_keeps_its_contract(case: schemathesis.Case) -> None:
 
     Positive-data acceptance is not required: duplicate ids, dangling region ids, object caps and unknown
     anchor ids are rules JSON Schema cannot state, so a schema-valid body may get the documented 422.
+    Negative-data rejection is not required either: a query string has no types, so a generated number
+    for robot_id ("1.37e-217") arrives as a valid string id; invalid bodies are covered by the fuzz tests.
     """
     case.call_and_validate(
-        headers={"Authorization": f"Bearer {_ADMIN_KEY}"}, excluded_checks=[positive_data_acceptance]
+        headers={"Authorization": f"Bearer {_ADMIN_KEY}"},
+        excluded_checks=[positive_data_acceptance, negative_data_rejection],
     )
