@@ -152,7 +152,7 @@ def test_non_finite_numbers_are_422(client: TestClient, scene_graph_dict: dict, 
 
 
 def test_object_cap_is_enforced(scene_graph_dict: dict) -> None:
-    settings = Settings(_env_file=None, max_objects=10, log_json=False)  # type: ignore[call-arg]
+    settings = Settings(_env_file=None, max_objects=10, log_json=False, data_dir=None)  # type: ignore[call-arg]
     with TestClient(create_app(settings)) as small:
         response = _ground(small, scene_graph_dict, "the bag is on the table")
     assert response.status_code == 422
