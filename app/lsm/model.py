@@ -9,6 +9,8 @@ Two transformer stages over tokens built by `app.lsm.features`:
 The fused target-query token, FiLM-modulated by the anchor region's (s, t), feeds a head 256 -> 1024 -> 512
 -> 9: mu = tanh(.) in the region frame, L lower-triangular with softplus diagonal + sigma floor, then
 mu_w = s * mu + t, L_w = diag(s) L, Sigma = L_w L_w^T (the reference's appendix table, equation by equation).
+Deviations (see models/lsm/MODEL_CARD.md): the relation also enters as an embedding on the text token and
+as a per-relation linear map of the region condition added to the head's 9 outputs.
 
 Loss (reference appendix), lambda_1 = 1:
     L = 1/2 (log|Sigma| + (y - mu)^T Sigma^-1 (y - mu) + 3 log 2 pi) + lambda_1 ||mu - y||_1.
@@ -62,7 +64,7 @@ class LSMConfig:
     l1_weight: float = 1.0
     # Input features (they define the output frame, so they travel with the weights).
     max_objects: int = 150  # nearest to the anchor(s), anchors always kept
-    region_margin_xy: float = 1.0  # s = anchors' joint half-extent + margin (metres), per axis
+    region_margin_xy: float = 1.0  # s = reach of the anchors' joint box from t + margin (metres), per axis
     region_margin_z: float = 1.5
     region_min_half_extent: float = 0.5  # floor on every component of s (metres)
     ordinal_scene_frame: bool = True  # closest/farthest: s grows to reach the whole scene's bounding box
