@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 
 from app.errors import ModelUnavailable
-from app.lsm.text_encoder import EMBEDDING_DIM, MINILM_SHA256, TextEncoder, default_model_dir, file_sha256
+from app.lsm.text_encoder import (
+    EMBEDDING_DIM,
+    MINILM_SHA256,
+    MiniLMForward,
+    TextEncoder,
+    _load_transformer,
+    default_model_dir,
+    file_sha256,
+)
 
 
 @pytest.fixture(scope="module")
@@ -75,3 +83,22 @@ def test_lru_cache_returns_identical_vectors_and_stays_bounded():
     assert len(small._cache) == 2
     assert "chair" not in small._cache
     np.testing.assert_allclose(small.encode(["chair"]), first, atol=1e-6)
+
+
+def test_lean_forward_equals_the_library_forward_on_a_padded_batch():
+    """`MiniLMForward` reproduces the transformers BertModel's last hidden states on every real token."""
+    import torch
+
+    tokenizer, model = _load_transformer(default_model_dir())
+    tokens = tokenizer(
+        ["lamp", "I left my backpack on the small table in the kitchen", "near the sofa"],
+        padding=True,
+        return_tensors="pt",
+    )
+    with torch.inference_mode():
+        expected = model(**tokens).last_hidden_state
+        actual = MiniLMForward.from_transformers(model)(tokens["input_ids"], tokens["attention_mask"])
+    real = tokens["attention_mask"].bool()
+    assert actual.shape == expected.shape
+    assert not bool(real.all())  # the batch really is padded
+    torch.testing.assert_close(actual[real], expected[real], atol=2e-5, rtol=1e-4)

@@ -8,6 +8,12 @@ An embedding is what sentence-transformers computes for this model: the attentio
 the last hidden states, then L2 normalisation,
 
     e = normalize( sum_t m_t h_t / sum_t m_t ),   h_t in R^384.
+
+`transformers` loads the weights and the tokenizer; the forward pass itself is `MiniLMForward`, the same
+BERT encoder written as a dozen tensor operations on pre-transposed, fused weights. On one CPU thread it
+encodes a short utterance in about 10 ms where the library's module stack takes about 16 ms (its
+per-module overhead and (N, K) weight layout dominate at ten tokens), and the language sensor's latency
+budget is 15 ms for the whole call. Its outputs equal the library's to float32 rounding (tested).
 """
 
 from __future__ import annotations
@@ -72,7 +78,9 @@ class TextEncoder:
         self.max_tokens = max_tokens
         self.cache_size = cache_size
         self._cache: OrderedDict[str, np.ndarray] = OrderedDict()
-        self._tokenizer, self._model = _load_transformer(self.model_dir)
+        tokenizer, model = _load_transformer(self.model_dir)
+        self._tokenizer = tokenizer
+        self._forward = MiniLMForward.from_transformers(model)
 
     def encode(self, texts: Sequence[str], batch_size: int = 256) -> np.ndarray:
         """Unit-norm embeddings, shape (len(texts), 384), float32; cached texts skip the transformer."""
@@ -96,11 +104,85 @@ class TextEncoder:
             texts, padding=True, truncation=True, max_length=self.max_tokens, return_tensors="pt"
         )
         with torch.inference_mode():
-            hidden = self._model(**tokens).last_hidden_state  # (B, T, 384)
+            hidden = self._forward(tokens["input_ids"], tokens["attention_mask"])  # (B, T, 384)
             mask = tokens["attention_mask"].unsqueeze(-1).to(hidden.dtype)  # (B, T, 1)
             pooled = (hidden * mask).sum(dim=1) / mask.sum(dim=1).clamp(min=1e-9)  # (B, 384)
             pooled = torch.nn.functional.normalize(pooled, p=2.0, dim=-1)
         return pooled.numpy().astype(np.float32)
+
+
+class MiniLMForward:
+    """The BERT encoder of MiniLM as plain tensor operations: last hidden states (B, T, 384).
+
+    Post-norm BERT layers: x <- LN(x + Attn(x)), x <- LN(x + W2 gelu(W1 x)), after the embedding sum
+    LN(word + position + token type 0). Q, K and V are one fused matrix; every weight is stored
+    transposed, (K, N), so each projection is a single `addmm`.
+    """
+
+    def __init__(self, state: dict[str, Any], n_layers: int, n_heads: int, eps: float) -> None:
+        import torch
+
+        self.n_heads = n_heads
+        self.eps = eps
+        self.word = state["embeddings.word_embeddings.weight"]
+        self.position = state["embeddings.position_embeddings.weight"]
+        self.token_type = state["embeddings.token_type_embeddings.weight"][0]
+        self.ln_w, self.ln_b = state["embeddings.LayerNorm.weight"], state["embeddings.LayerNorm.bias"]
+        self.layers: list[dict[str, Any]] = []
+        for i in range(n_layers):
+            p = f"encoder.layer.{i}."
+            qkv = [f"{p}attention.self.{name}" for name in ("query", "key", "value")]
+            self.layers.append(
+                {
+                    "w_qkv": torch.cat([state[f"{q}.weight"] for q in qkv]).t().contiguous(),
+                    "b_qkv": torch.cat([state[f"{q}.bias"] for q in qkv]),
+                    "w_o": state[f"{p}attention.output.dense.weight"].t().contiguous(),
+                    "b_o": state[f"{p}attention.output.dense.bias"],
+                    "ln1_w": state[f"{p}attention.output.LayerNorm.weight"],
+                    "ln1_b": state[f"{p}attention.output.LayerNorm.bias"],
+                    "w_1": state[f"{p}intermediate.dense.weight"].t().contiguous(),
+                    "b_1": state[f"{p}intermediate.dense.bias"],
+                    "w_2": state[f"{p}output.dense.weight"].t().contiguous(),
+                    "b_2": state[f"{p}output.dense.bias"],
+                    "ln2_w": state[f"{p}output.LayerNorm.weight"],
+                    "ln2_b": state[f"{p}output.LayerNorm.bias"],
+                }
+            )
+
+    @classmethod
+    def from_transformers(cls, model: Any) -> MiniLMForward:
+        """Take the weights of a loaded `transformers` BertModel (absolute positions, GELU)."""
+        cfg = model.config
+        if cfg.model_type != "bert" or cfg.hidden_act != "gelu" or cfg.position_embedding_type != "absolute":
+            msg = (
+                f"expected a BERT encoder with GELU and absolute positions, got {cfg.model_type} "
+                f"({cfg.hidden_act}, {cfg.position_embedding_type})"
+            )
+            raise ModelUnavailable(msg)
+        state = {name: tensor.detach().clone() for name, tensor in model.state_dict().items()}
+        return cls(state, cfg.num_hidden_layers, cfg.num_attention_heads, cfg.layer_norm_eps)
+
+    def __call__(self, input_ids: Any, attention_mask: Any) -> Any:
+        import torch
+        import torch.nn.functional as F
+
+        bsz, seq = input_ids.shape
+        dim = self.word.shape[1]
+        head = dim // self.n_heads
+        x = self.word[input_ids] + self.position[:seq] + self.token_type  # (B, T, D)
+        x = F.layer_norm(x, (dim,), self.ln_w, self.ln_b, self.eps).view(bsz * seq, dim)  # (B*T, D)
+        # Padded keys get -inf; every row keeps at least its [CLS] key.
+        key_bias = torch.zeros(bsz, 1, 1, seq).masked_fill(attention_mask[:, None, None, :] == 0, -torch.inf)
+        for layer in self.layers:
+            qkv = torch.addmm(layer["b_qkv"], x, layer["w_qkv"])  # (B*T, 3D)
+            q, k, v = qkv.view(bsz, seq, 3, self.n_heads, head).permute(2, 0, 3, 1, 4)  # (B, H, T, d) each
+            y = F.scaled_dot_product_attention(q, k, v, attn_mask=key_bias)  # (B, H, T, d)
+            y = torch.addmm(layer["b_o"], y.transpose(1, 2).reshape(bsz * seq, dim), layer["w_o"])  # (B*T, D)
+            x = F.layer_norm(x + y, (dim,), layer["ln1_w"], layer["ln1_b"], self.eps)
+            h = F.gelu(torch.addmm(layer["b_1"], x, layer["w_1"]))  # (B*T, 4D)
+            y = torch.addmm(layer["b_2"], h, layer["w_2"])  # (B*T, D)
+            x = F.layer_norm(x + y, (dim,), layer["ln2_w"], layer["ln2_b"], self.eps)
+        return x.view(bsz, seq, dim)
 
 
 def _load_transformer(model_dir: Path) -> tuple[Any, Any]:
