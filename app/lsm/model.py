@@ -202,10 +202,14 @@ class LanguageSensorModel(nn.Module):
         query = (self.query + self.role_emb.weight[ROLE_QUERY]).expand(bsz, 1, -1)  # (B, 1, D)
 
         # Spatial backbone over [Q; objects] with the text-conditioned pairwise bias (zero for Q's row/col).
+        # pair_out(h * (1 + gamma) + beta) = h (W diag(1 + gamma))^T + (W beta + c): folding the FiLM into
+        # per-sample output weights spares two passes over the (B, N, N, 64) hidden tensor.
         gamma, beta = self.pair_film(text).chunk(2, dim=-1)  # (B, 64) each
-        hidden = F.gelu(self.pair_in(batch.pair))  # (B, N, N, 64)
-        hidden = hidden * (1.0 + gamma[:, None, None, :]) + beta[:, None, None, :]
-        pair_bias = self.pair_out(hidden).permute(0, 3, 1, 2)  # (B, H, N, N)
+        hidden = F.gelu(self.pair_in(batch.pair)).view(bsz, n_obj * n_obj, -1)  # (B, N*N, 64)
+        w_out = self.pair_out.weight[None] * (1.0 + gamma[:, None, :])  # (B, H, 64)
+        b_out = beta @ self.pair_out.weight.T + self.pair_out.bias  # (B, H)
+        pair_bias = torch.baddbmm(b_out[:, None, :], hidden, w_out.transpose(1, 2))  # (B, N*N, H)
+        pair_bias = pair_bias.view(bsz, n_obj, n_obj, -1).permute(0, 3, 1, 2)  # (B, H, N, N)
         pad = torch.zeros(
             bsz, cfg.n_heads, n_obj + 1, n_obj + 1, dtype=pair_bias.dtype, device=pair_bias.device
         )
