@@ -7,6 +7,8 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from app.allocator import keep_freed_buffers
+
 # Modules exposing `add_parser(subparsers)`; each sets `func` on its parser and keeps its heavy imports
 # (torch, matplotlib) inside its functions, so building the parser stays cheap.
 _COMMAND_MODULES = {
@@ -33,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    keep_freed_buffers()
     return int(args.func(args) or 0)
 
 

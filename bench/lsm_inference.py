@@ -3,6 +3,7 @@ with the utterance new to the text encoder (text encoding included) and with it 
 
 from __future__ import annotations
 
+import argparse
 import platform
 import time
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from app.allocator import keep_freed_buffers
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.relations import Relation
 from app.lsm.grounder import DEFAULT_MODEL_DIR, LSMGrounder
@@ -22,7 +24,11 @@ SCENE = (
 
 
 def main() -> None:
-    grounder = LSMGrounder.load(DEFAULT_MODEL_DIR, threads=1, encoder=default_text_encoder())
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (VLMAP_TORCH_THREADS)")
+    args = parser.parse_args()
+    keep_freed_buffers()  # as every `vlmap` command does
+    grounder = LSMGrounder.load(DEFAULT_MODEL_DIR, threads=args.threads, encoder=default_text_encoder())
     scene = SceneGraph.model_validate_json(SCENE.read_text())
     first = {o.label: o.id for o in scene.objects}
     tables = [o.id for o in scene.objects if o.label == "table"]
