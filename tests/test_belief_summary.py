@@ -75,13 +75,21 @@ SCENE = SceneGraph.model_validate(
 )
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_summary_matches_brute_force(seed: int) -> None:
+@pytest.mark.parametrize(
+    ("seed", "lang_std", "vis_offset"),
+    [
+        (0, 3.0, 0.0),  # the layers' default clamps: exp without a shift
+        (1, 3.0, 0.0),
+        (2, 3.0, 80.0),  # log-weights up to 92, where float32 exp overflows: exp(s - peak)
+        (3, 60.0, 0.0),  # a range wider than 80 nats: exp(max(s - peak, -80))
+    ],
+)
+def test_summary_matches_brute_force(seed: int, lang_std: float, vis_offset: float) -> None:
     rng = np.random.default_rng(seed)
     grid = VoxelGrid.around(SCENE, voxel_size=0.1, margin=0.3)
     assert grid.n_voxels > 10 * 1024  # several top-k blocks
-    lang = np.minimum(rng.normal(0, 3, grid.n_voxels), 0).astype(np.float32)
-    vis = rng.uniform(-10, 12, grid.n_voxels).astype(np.float32)
+    lang = np.minimum(rng.normal(0, lang_std, grid.n_voxels), 0).astype(np.float32)
+    vis = (rng.uniform(-10, 12, grid.n_voxels) + vis_offset).astype(np.float32)
     summary = summarize(grid, lang, vis, SCENE, top_k=7, max_places=10, on_margin=0.3)
     ref = brute_force(grid, lang, vis, SCENE, on_margin=0.3)
     p = ref["p"]

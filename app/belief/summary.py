@@ -44,6 +44,8 @@ _TOPK_BLOCK = 1024
 _CHUNK_VOXELS = 1 << 16
 #: Log-weights are floored at max - 80 before exp (see `summarize`).
 _EXP_FLOOR = -80.0
+#: Largest log-weight exponentiated unshifted: e^40 * 40 * 1024 stays far inside float32's range.
+_EXP_CEILING = 40.0
 #: Place indices kept for (grid, scene graph, margin) triples; one per live session is plenty.
 _PLACE_CACHE_SIZE = 64
 
@@ -229,10 +231,12 @@ def summarize(
         np.add(lang[start:stop], vis[start:stop], out=out)
         return out
 
-    # Pass 1: block maxima, then the top k inside the few blocks that can hold them.
+    # Pass 1: block maxima (and the global minimum), then the top k inside the few blocks that can hold them.
     block_starts, block_max = [], []
+    low = math.inf
     for start, stop in chunks:
         s = log_weights(start, stop)
+        low = min(low, float(s.min()))
         full = len(s) - len(s) % _TOPK_BLOCK
         block_starts.append(np.arange(start, start + len(s), _TOPK_BLOCK))
         block_max.append(s[:full].reshape(-1, _TOPK_BLOCK).max(axis=1))
@@ -243,9 +247,16 @@ def summarize(
     top_idx = _top_k_indices(np.concatenate(block_max), starts, stops, lang, vis, min(max(top_k, 1), n))
     peak = np.add(lang[top_idx[0]], vis[top_idx[0]], dtype=np.float32)
 
-    # Pass 2: p = exp(s - peak) (max 1), sum_i p_i (s_i - peak) for the entropy, and column moments about
-    # the MAP voxel (small offsets keep float32 products accurate):
+    # Pass 2: p = exp(s - shift), sum_i p_i (s_i - shift) for the entropy, and column moments about the MAP
+    # voxel (small offsets keep float32 products accurate):
     # cols[i, j] = (sum_k p_ijk, sum_k p_ijk dz_k, sum_k p_ijk dz_k^2).
+    # Any shift gives the same posterior. The layers' clamps normally keep every s inside [-80, 40], where
+    # float32 exp is exact to rounding, neither underflows nor overflows (nor do the block sums below):
+    # then shift = 0 and the pass skips two full-size operations. Otherwise shift = peak (p <= 1) and s is
+    # floored at peak - 80, since exp slows down ~10x on float32 underflow and e^-80 relative to the MAP
+    # voxel is far below anything the summary reports.
+    shift = 0.0 if (low >= _EXP_FLOOR and peak <= _EXP_CEILING) else float(peak)
+    floor = low - shift < _EXP_FLOOR
     anchor = grid.centers(top_idx[:1])[0]
     xs, ys, zs = (grid.axis_centers(a) - anchor[a] for a in range(3))
     z_powers = np.stack([np.ones(nz), zs, zs * zs], axis=1).astype(np.float32)  # (nz, 3)
@@ -254,10 +265,10 @@ def summarize(
     p_dot_s = 0.0
     for start, stop in chunks:
         s = log_weights(start, stop)
-        s -= peak
-        # exp underflows (and slows down ~10x) below about -87 in float32; e^-80 relative to the MAP voxel
-        # is far below anything the summary reports, so nothing visible changes.
-        np.maximum(s, _EXP_FLOOR, out=s)
+        if shift:
+            s -= shift
+        if floor:
+            np.maximum(s, _EXP_FLOOR, out=s)
         chunk = p[start:stop]
         np.exp(s, out=chunk)
         p_dot_s += _blocked_dot(chunk, s)
