@@ -115,8 +115,9 @@ class MiniLMForward:
     """The BERT encoder of MiniLM as plain tensor operations: last hidden states (B, T, 384).
 
     Post-norm BERT layers: x <- LN(x + Attn(x)), x <- LN(x + W2 gelu(W1 x)), after the embedding sum
-    LN(word + position + token type 0). Q, K and V are one fused matrix; every weight is stored
-    transposed, (K, N), so each projection is a single `addmm`.
+    LN(word + position + token type 0). Q, K and V are one fused matrix. Projections are computed
+    feature-major, y^T = W x^T + b with W as stored (N, K) and x^T contiguous (K, B*T): with ten tokens
+    that GEMM shape runs ~1.4x faster on one core than x W^T (measured with MKL here).
     """
 
     def __init__(self, state: dict[str, Any], n_layers: int, n_heads: int, eps: float) -> None:
@@ -134,16 +135,16 @@ class MiniLMForward:
             qkv = [f"{p}attention.self.{name}" for name in ("query", "key", "value")]
             self.layers.append(
                 {
-                    "w_qkv": torch.cat([state[f"{q}.weight"] for q in qkv]).t().contiguous(),
-                    "b_qkv": torch.cat([state[f"{q}.bias"] for q in qkv]),
-                    "w_o": state[f"{p}attention.output.dense.weight"].t().contiguous(),
-                    "b_o": state[f"{p}attention.output.dense.bias"],
+                    "w_qkv": torch.cat([state[f"{q}.weight"] for q in qkv]),  # (3D, D)
+                    "b_qkv": torch.cat([state[f"{q}.bias"] for q in qkv])[:, None],  # (3D, 1)
+                    "w_o": state[f"{p}attention.output.dense.weight"],
+                    "b_o": state[f"{p}attention.output.dense.bias"][:, None],
                     "ln1_w": state[f"{p}attention.output.LayerNorm.weight"],
                     "ln1_b": state[f"{p}attention.output.LayerNorm.bias"],
-                    "w_1": state[f"{p}intermediate.dense.weight"].t().contiguous(),
-                    "b_1": state[f"{p}intermediate.dense.bias"],
-                    "w_2": state[f"{p}output.dense.weight"].t().contiguous(),
-                    "b_2": state[f"{p}output.dense.bias"],
+                    "w_1": state[f"{p}intermediate.dense.weight"],  # (4D, D)
+                    "b_1": state[f"{p}intermediate.dense.bias"][:, None],
+                    "w_2": state[f"{p}output.dense.weight"],  # (D, 4D)
+                    "b_2": state[f"{p}output.dense.bias"][:, None],
                     "ln2_w": state[f"{p}output.LayerNorm.weight"],
                     "ln2_b": state[f"{p}output.LayerNorm.bias"],
                 }
@@ -174,14 +175,17 @@ class MiniLMForward:
         # Padded keys get -inf; every row keeps at least its [CLS] key.
         key_bias = torch.zeros(bsz, 1, 1, seq).masked_fill(attention_mask[:, None, None, :] == 0, -torch.inf)
         for layer in self.layers:
-            qkv = torch.addmm(layer["b_qkv"], x, layer["w_qkv"])  # (B*T, 3D)
-            q, k, v = qkv.view(bsz, seq, 3, self.n_heads, head).permute(2, 0, 3, 1, 4)  # (B, H, T, d) each
+            qkv = torch.addmm(layer["b_qkv"], layer["w_qkv"], x.t().contiguous())  # (3D, B*T)
+            # (3, H, d, B, T) -> (3, B, H, T, d): q, k, v
+            q, k, v = qkv.view(3, self.n_heads, head, bsz, seq).permute(0, 3, 1, 4, 2)
             y = F.scaled_dot_product_attention(q, k, v, attn_mask=key_bias)  # (B, H, T, d)
-            y = torch.addmm(layer["b_o"], y.transpose(1, 2).reshape(bsz * seq, dim), layer["w_o"])  # (B*T, D)
-            x = F.layer_norm(x + y, (dim,), layer["ln1_w"], layer["ln1_b"], self.eps)
-            h = F.gelu(torch.addmm(layer["b_1"], x, layer["w_1"]))  # (B*T, 4D)
-            y = torch.addmm(layer["b_2"], h, layer["w_2"])  # (B*T, D)
-            x = F.layer_norm(x + y, (dim,), layer["ln2_w"], layer["ln2_b"], self.eps)
+            y = torch.addmm(
+                layer["b_o"], layer["w_o"], y.permute(1, 3, 0, 2).reshape(dim, bsz * seq)
+            )  # (D, B*T)
+            x = F.layer_norm(x + y.t(), (dim,), layer["ln1_w"], layer["ln1_b"], self.eps)  # (B*T, D)
+            h = F.gelu(torch.addmm(layer["b_1"], layer["w_1"], x.t().contiguous()))  # (4D, B*T)
+            y = torch.addmm(layer["b_2"], layer["w_2"], h)  # (D, B*T)
+            x = F.layer_norm(x + y.t(), (dim,), layer["ln2_w"], layer["ln2_b"], self.eps)
         return x.view(bsz, seq, dim)
 
 
