@@ -526,6 +526,44 @@ def test_two_replicas_updating_one_session_equal_the_sequential_sum(redis_url: s
 
 
 @pytest.mark.redis
+def test_replicas_share_each_version_summary_and_never_serve_a_stale_one(
+    redis_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import app.stores.redis_store as redis_store_module
+
+    calls: list[int] = []
+
+    def counting_summarize(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        return summarize(*args, **kwargs)
+
+    monkeypatch.setattr(redis_store_module, "summarize", counting_summarize)
+    first = redis_store(redis_url)
+    second = redis_store(redis_url, prefix=first.prefix)
+    session = make_session()
+    first.create(session)
+    rng = np.random.default_rng(3)
+    for step in range(3):
+        apply_to_store(first, session.id, random_ops(40 + step, 1, session.grid.n_voxels)[0])
+        expected = first.get(session.id)
+        reference = dataclasses.replace(
+            summarize(expected.grid, expected.belief.lang, expected.belief.vis, SCENE, top_k=3),
+            version=expected.version,
+        )
+        replica = (first, second)[int(rng.integers(0, 2))]
+        assert replica.summary(session.id, top_k=3) == reference  # computed and stored
+        assert second.summary(session.id, top_k=3) == reference  # read back, not recomputed
+        assert first.summary(session.id, top_k=3) == reference
+        assert len(calls) == step + 1
+    assert first.summary(session.id, top_k=4).top_voxels[3] is not None  # other options: their own entry
+    assert len(calls) == 4
+    first.delete(session.id)
+    assert not first._client.exists(first._key(session.id, "summary"))
+    first.close()
+    second.close()
+
+
+@pytest.mark.redis
 def test_an_observation_batch_writes_only_the_blocks_it_touches(redis_url: str) -> None:
     store = redis_store(redis_url, block_voxels=1024)
     session = make_session()

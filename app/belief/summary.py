@@ -93,6 +93,31 @@ class PosteriorSummary:
         """E.g. "0.62 on table 7, 0.30 on kitchen counter 2, 0.03 on chair 5"."""
         return ", ".join(place.describe() for place in self.objects[:n])
 
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], version: int | None = None) -> PosteriorSummary:
+        """The inverse of `to_dict` (which leaves the version out)."""
+
+        def voxel(v: dict[str, Any]) -> VoxelMass:
+            x, y, z = v["center"]
+            return VoxelMass(int(v["index"]), (float(x), float(y), float(z)), float(v["probability"]))
+
+        def place(m: dict[str, Any]) -> PlaceMass:
+            return PlaceMass(m["kind"], m["id"], m["label"], float(m["mass"]))
+
+        mx, my, mz = data["mean"]
+        return cls(
+            n_voxels=int(data["n_voxels"]),
+            map_voxel=voxel(data["map_voxel"]),
+            top_voxels=tuple(voxel(v) for v in data["top_voxels"]),
+            mean=(float(mx), float(my), float(mz)),
+            covariance=tuple((float(r[0]), float(r[1]), float(r[2])) for r in data["covariance"]),
+            entropy_nats=float(data["entropy_nats"]),
+            information_gain_nats=float(data["information_gain_nats"]),
+            objects=tuple(place(m) for m in data["objects"]),
+            regions=tuple(place(m) for m in data["regions"]),
+            version=version,
+        )
+
     def to_dict(self) -> dict[str, Any]:
         def voxel(v: VoxelMass) -> dict[str, Any]:
             return {"index": v.index, "center": list(v.center), "probability": v.probability}

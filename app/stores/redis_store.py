@@ -8,6 +8,9 @@ Keys of session S (the hash tag {S} keeps them in one cluster slot):
     <prefix>:s:{S}:lang   hash: block number -> float32 bytes of `block_voxels` voxels (absent = zeros)
     <prefix>:s:{S}:vis    hash: the same for the vision layer
     <prefix>:s:{S}:lock   the update lock
+    <prefix>:s:{S}:summary  hash: summary options -> msgpack {version, summary}, the last summary computed
+                          by any replica: dashboards polling through several replicas summarise each
+                          version once, fleet-wide (a reader uses it only if its version is current)
     <prefix>:sessions, <prefix>:robot:<R>   sorted sets of session ids scored by expiry time (ms)
 
 No lost updates across replicas: an update takes the session's lock (SET NX PX with a random token,
@@ -28,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import json
 import math
 import time
 import uuid
@@ -166,7 +170,7 @@ class RedisSessionStore:
         """Queue the expiry of all the session's keys and index entries (inside MULTI)."""
         expiry = self._expiry_ms(now)
         if math.isfinite(expiry):
-            for part in ("meta", "lang", "vis"):
+            for part in ("meta", "lang", "vis", "summary"):
                 pipe.pexpireat(self._key(session_id, part), int(expiry))
         pipe.zadd(self._index_key(), {session_id: expiry})
         pipe.zadd(self._index_key(robot_id), {session_id: expiry})
@@ -327,7 +331,7 @@ class RedisSessionStore:
                 raise NotFound(msg)
             robot_id = msgpack.unpackb(static_raw, raw=False)["robot_id"]
             with self._client.pipeline(transaction=True) as pipe:
-                pipe.delete(*(self._key(session_id, part) for part in ("meta", "lang", "vis")))
+                pipe.delete(*(self._key(session_id, part) for part in ("meta", "lang", "vis", "summary")))
                 pipe.zrem(self._index_key(), session_id)
                 pipe.zrem(self._index_key(robot_id), session_id)
                 pipe.execute()
@@ -473,10 +477,33 @@ class RedisSessionStore:
 
     @_redis_errors
     def summary(self, session_id: str, **kwargs: Any) -> PosteriorSummary:
+        """The current version's summary: the stored one if some replica already computed it, else computed
+        from the layers and stored for the others."""
+        meta_key, summary_key = self._key(session_id, "meta"), self._key(session_id, "summary")
+        options = json.dumps(kwargs, sort_keys=True)
+        with self._client.pipeline(transaction=False) as pipe:
+            pipe.hget(meta_key, "version")
+            pipe.hget(summary_key, options)
+            pipe.pttl(meta_key)
+            version, stored, ttl_ms = pipe.execute()
+        if version is None:
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        if stored is not None:
+            entry = msgpack.unpackb(stored, raw=False)
+            if entry["version"] == int(version):
+                return PosteriorSummary.from_dict(entry["summary"], version=entry["version"])
         session = self.get(session_id)
         summary = summarize(
             session.grid, session.belief.lang, session.belief.vis, session.scene_graph, **kwargs
         )
+        # A slower replica may overwrite a newer entry with an older one; readers then recompute (harmless).
+        entry = {"version": session.version, "summary": summary.to_dict()}
+        with self._client.pipeline(transaction=False) as pipe:
+            pipe.hset(summary_key, options, msgpack.packb(entry, use_bin_type=True))
+            if ttl_ms > 0:
+                pipe.pexpire(summary_key, ttl_ms)
+            pipe.execute()
         return dataclasses.replace(summary, version=session.version)
 
     @_redis_errors
