@@ -40,6 +40,9 @@ from app.api.launcher import RedisServer, start_service, wait_ready
 from app.client import AsyncVLMapClient, VLMapClient
 
 TP, FP = 0.51, 0.5
+#: Robots send label ids, as a segmenter's output; every voxel is labelled as the target (see the docstring).
+LABEL_MAP = {"0": "floor", "1": "backpack"}
+TARGET_ID = 1
 INCREMENT = math.log(TP / FP)
 SCENE = (
     Path(__file__).resolve().parent.parent / "tests" / "resources" / "scenes" / "scannet_scene0590_00.json"
@@ -81,11 +84,30 @@ class Fleet:
             replica = i % len(self.urls)
             with VLMapClient(self.urls[replica]) as client:
                 session = client.create_session(
-                    f"robot-{i}", self.scene, target_label="backpack", sensor_model={"tp": TP, "fp": FP}
+                    f"robot-{i}",
+                    self.scene,
+                    target_label="backpack",
+                    sensor_model={"tp": TP, "fp": FP},
+                    label_map=LABEL_MAP,
                 )
             self.robots.append(RobotLog(session["id"], replica))
         self.n_voxels = session["grid"]["n_voxels"]
         self.shape = tuple(session["grid"]["shape"])
+
+    def batch_voxels(self, rng: np.random.Generator) -> np.ndarray:
+        """Flat indices of one batch: a box of about `voxels` voxels at a random place, as a camera's view
+        covers a connected region (`--batch-shape box`), or voxels drawn anywhere in the grid (`random`)."""
+        if self.args.batch_shape == "random":
+            return np.unique(rng.integers(0, self.n_voxels, size=self.args.voxels))
+        nx, ny, nz = self.shape
+        depth = min(nz, 20)
+        side = max(1, round(math.sqrt(self.args.voxels / depth)))
+        sx, sy = min(nx, side), min(ny, -(-self.args.voxels // (depth * min(nx, side))))
+        x0, y0, z0 = (int(rng.integers(0, n - s + 1)) for n, s in ((nx, sx), (ny, sy), (nz, depth)))
+        i, j, k = np.meshgrid(
+            np.arange(x0, x0 + sx), np.arange(y0, y0 + sy), np.arange(z0, z0 + depth), indexing="ij"
+        )
+        return np.ravel_multi_index((i.ravel(), j.ravel(), k.ravel()), self.shape)
 
     async def _call(self, route: str, coro: Any) -> Any:
         started = time.perf_counter()
@@ -104,19 +126,23 @@ class Fleet:
         log = self.robots[index]
         period = 1.0 / self.args.rate
         rng = np.random.default_rng(self.args.seed + index)
+        utterance_every = self.args.rate * 5  # batches between utterances: one every 5 s
+        # Robots are not phase-locked: each starts at a random point of its batch period and of its utterance
+        # cycle (all 20 in step would make every request arrive in bursts of 20 and measure the burst).
+        step = int(rng.integers(0, utterance_every))
         async with AsyncVLMapClient(self.urls[log.replica], timeout_s=10.0) as client:
-            step = 0
+            await asyncio.sleep(float(rng.uniform(0.0, period)))
             while not self.stop.is_set():
                 tick = time.perf_counter()
-                if step % (self.args.rate * 5) == 0:
+                if step % utterance_every == 0:
                     await self._call(
                         "POST /utterances",
                         client.send_utterance(log.session_id, "my backpack is on the desk"),
                     )
-                flat = rng.choice(self.n_voxels, size=self.args.voxels, replace=False)
-                ijk = np.stack(np.unravel_index(flat, self.shape), axis=1)
+                flat = self.batch_voxels(rng)
+                ijk = np.stack(np.unravel_index(flat, self.shape), axis=1).astype(np.int32)
                 log.sent.append(flat)
-                labels = ["backpack"] * len(flat)
+                labels = np.full(len(flat), TARGET_ID, dtype=np.uint32)
                 result = await self._call(
                     "POST /observations",
                     client.send_observations(log.session_id, summary=False, voxels=ijk, labels=labels),
@@ -128,8 +154,11 @@ class Fleet:
     async def dashboard(self, index: int) -> None:
         etags: dict[str, str | None] = {}
         async with AsyncVLMapClient(self.urls[index % len(self.urls)], timeout_s=10.0) as client:
+            # Each dashboard starts its round at a different robot, as independent screens would.
+            start = index * len(self.robots) // max(1, self.args.dashboards)
+            order = self.robots[start:] + self.robots[:start]
             while not self.stop.is_set():
-                for log in self.robots:
+                for log in order:
                     if self.stop.is_set():
                         break
                     result = await self._call(
@@ -157,7 +186,9 @@ class Fleet:
         checked = lost = 0
         for log in self.robots:
             with VLMapClient(self.urls[log.replica]) as client:
-                vis = client.get_belief_grid(log.session_id, layers=True).vis.astype(np.float64)
+                layers = client.get_belief_grid(log.session_id, layers=True)
+            assert layers.vis is not None, "the service sent no vision layer"
+            vis = layers.vis.astype(np.float64)
             acked = np.zeros(self.n_voxels)
             sent = np.zeros(self.n_voxels)
             for flat, ok in zip(log.sent, log.acked, strict=True):
@@ -181,6 +212,22 @@ def client_disconnects_mid_upload(url: str) -> None:
             "Content-Length: 1000000\r\n\r\n"
         )
         sock.sendall(head.encode() + b"\x00" * 1024)
+
+
+def cpu_seconds(pid: int | None = None) -> float:
+    """User + system CPU time of a process so far (this one when pid is None), seconds (Linux)."""
+    if pid is None:
+        times = os.times()
+        return times.user + times.system
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def cpu_shares(pids: dict[str, int | None], run: Any, seconds: float) -> dict[str, float]:
+    """Run `run()` and return how many cores each process kept busy on average meanwhile."""
+    before = {name: cpu_seconds(pid) for name, pid in pids.items()}
+    run()
+    return {name: round((cpu_seconds(pid) - before[name]) / seconds, 2) for name, pid in pids.items()}
 
 
 def summarise(stats: Stats) -> dict[str, Any]:
@@ -217,6 +264,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--rate", type=int, default=2, help="batches per second per robot")
     parser.add_argument("--poll-rate", type=float, default=2.0, help="belief polls per second per dashboard")
     parser.add_argument("--voxels", type=int, default=10_000, help="voxels per batch")
+    parser.add_argument(
+        "--batch-shape",
+        choices=["box", "random"],
+        default="box",
+        help="each batch a box of voxels, as one camera view (default), or voxels anywhere in the grid",
+    )
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of steady load")
     parser.add_argument(
         "--fault-duration", type=float, default=15.0, help="seconds of load around each fault"
@@ -251,7 +304,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             proc, url = start_service(env)
             procs.append(proc)
             urls.append(url)
-        stack.callback(lambda: [p.kill() for p in procs if p.poll() is None])
+
+        def stop_replicas() -> None:
+            for proc in procs:
+                if proc.poll() is None:
+                    proc.kill()
+
+        stack.callback(stop_replicas)
         for proc, url in zip(procs, urls, strict=True):
             wait_ready(url, proc)
 
@@ -262,9 +321,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             f"{args.dashboards} dashboards, {args.replicas} replica(s), store={args.store}, "
             f"grid of {fleet.n_voxels} voxels; {args.duration:.0f} s"
         )
-        asyncio.run(fleet.run(args.duration))
+        pids: dict[str, int | None] = {"load generator": None}
+        pids |= {f"replica {i + 1}": proc.pid for i, proc in enumerate(procs)}
+        if redis_server is not None and redis_server.proc is not None:
+            pids["redis"] = redis_server.proc.pid
+        results["cpu_cores_busy"] = cpu_shares(
+            pids, lambda: asyncio.run(fleet.run(args.duration)), args.duration
+        )
         results["load"] = summarise(fleet.stats)
         print_table(f"Load ({args.duration:.0f} s)", results["load"], args.duration)
+        busy = ", ".join(f"{name} {cores}" for name, cores in results["cpu_cores_busy"].items())
+        print(f"Cores kept busy on average ({os.cpu_count()} on this machine): {busy}")
 
         async def restart_redis() -> None:
             assert redis_server is not None
