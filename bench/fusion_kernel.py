@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.allocator import keep_freed_buffers
 from app.belief import fusion
 from app.belief.grid import VoxelGrid
 from app.belief.session import BeliefState, new_session
@@ -75,6 +76,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--redis-url", default=None, help="also time the Redis store on this server")
     args = parser.parse_args()
+    keep_freed_buffers()  # as the service does (app.allocator)
     rng = np.random.default_rng(0)
     scene = load_scene()
     low, _ = scene.bounds()
