@@ -58,6 +58,12 @@ class Settings(BaseSettings):
     session_ttl_s: float = Field(
         default=24 * 3600.0, gt=0, description="Sessions expire after this idle time."
     )
+    summary_watch_s: float = Field(
+        default=30.0,
+        ge=0,
+        description="A session whose belief was read within this many seconds gets each new version "
+        "summarised in the background, ready for the next poll (0: summarise only when asked).",
+    )
     max_sessions_per_robot: int = Field(default=16, ge=1, description="Live sessions per robot (429 above).")
     max_grid_voxels: int = Field(
         default=16_000_000, ge=1, description="Voxels per session grid (memory guard)."

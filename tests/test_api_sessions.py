@@ -325,3 +325,50 @@ def test_sensor_rate_batches_may_skip_the_summary(client: TestClient, two_rooms:
     body = client.post(f"/v1/sessions/{sid}/observations", params={"summary": "false"}, json=batch).json()
     assert body["belief"] is None and body["version"] == 1
     assert client.post(f"/v1/sessions/{sid}/observations", json=batch).json()["belief"]["version"] == 2
+
+
+def test_a_watched_session_is_summarised_in_the_background_before_the_next_poll(
+    client: TestClient, two_rooms: dict
+) -> None:
+    sid = _create(client, two_rooms, target_label="backpack")["id"]
+    services = client.app.state.services  # type: ignore[attr-defined]
+    batch = {"voxels": [[1, 1, 1]], "labels": ["chair"]}
+    client.post(f"/v1/sessions/{sid}/observations", params={"summary": "false"}, json=batch)
+    assert services.summaries.get((sid, 1, 5)) is None  # nobody reads this belief: nothing summarised
+    assert client.get(f"/v1/sessions/{sid}/belief").json()["version"] == 1  # a dashboard starts polling
+    for version in (2, 3):
+        client.post(f"/v1/sessions/{sid}/observations", params={"summary": "false"}, json=batch)
+        services.summaries.close()  # waits for the background job (a later refresh starts a new pool)
+        ready = services.summaries.get((sid, version, 5))
+        assert ready is not None and ready.version == version
+        polled = client.get(f"/v1/sessions/{sid}/belief").json()
+        assert polled == ready.model_dump(mode="json")
+
+
+def test_summary_refresh_runs_once_more_for_updates_during_a_job_and_stops_when_unwatched() -> None:
+    import threading
+
+    from app.api.services import SummaryCache
+
+    now = [0.0]
+    cache = SummaryCache(watch_s=10.0, clock=lambda: now[0])
+    started, release = threading.Event(), threading.Event()
+    calls: list[int] = []
+
+    def slow(top_k: int) -> None:
+        calls.append(top_k)
+        started.set()
+        release.wait(5)
+
+    assert not cache.refresh("s", slow)  # never read
+    cache.watch("s", 5)
+    cache.watch("s", 7)
+    assert cache.refresh("s", slow)
+    assert started.wait(5)
+    assert cache.refresh("s", slow) and cache.refresh("s", slow)  # two updates during the job: one more round
+    release.set()
+    cache.close()
+    assert calls == [5, 7, 5, 7]
+    now[0] = 11.0  # no read for longer than watch_s
+    assert not cache.refresh("s", slow)
+    assert calls == [5, 7, 5, 7]

@@ -86,6 +86,7 @@ def create_app(
                 yield
             finally:
                 tasks.cancel_scope.cancel()
+                await anyio.to_thread.run_sync(services.summaries.close)  # before the store it reads
                 if owns_store and services.store is not None:
                     services.store.close()
                     services.store = None

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import logging
+import math
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any, TypeVar
@@ -106,12 +109,25 @@ class SummaryCache:
     """Belief summaries by (session, version, top_k): an unchanged belief is not summarised twice.
 
     Versions are global (the store's), so entries stay right across replicas; an update makes a new key.
+
+    Watched sessions are summarised ahead of their next poll: when a session's belief was read within the
+    last `watch_s` seconds, `refresh` summarises its new version on a background thread (one job per session
+    at a time; updates that land during a job make it run once more), so a dashboard's poll finds the summary
+    ready instead of paying for a pass over the whole grid.
     """
 
-    def __init__(self, maxsize: int = 1024) -> None:
+    def __init__(
+        self, maxsize: int = 1024, watch_s: float = 30.0, clock: Callable[[], float] = time.monotonic
+    ):
         self.maxsize = maxsize
+        self.watch_s = watch_s
+        self._clock = clock
         self._items: OrderedDict[tuple[str, int, int], Any] = OrderedDict()
         self._lock = threading.Lock()
+        self._watched: dict[str, tuple[float, set[int]]] = {}  # session -> (last read, top_k values read)
+        self._running: set[str] = set()
+        self._again: set[str] = set()
+        self._pool: ThreadPoolExecutor | None = None
 
     def get(self, key: tuple[str, int, int]) -> Any | None:
         with self._lock:
@@ -126,6 +142,51 @@ class SummaryCache:
             while len(self._items) > self.maxsize:
                 self._items.popitem(last=False)
 
+    def watch(self, session_id: str, top_k: int) -> None:
+        """Note that someone reads this session's summary (with this top_k)."""
+        if self.watch_s <= 0:
+            return
+        with self._lock:
+            _, top_ks = self._watched.get(session_id, (0.0, set()))
+            self._watched[session_id] = (self._clock(), top_ks | {top_k})
+
+    def refresh(self, session_id: str, summarise: Callable[[int], Any]) -> bool:
+        """If the session is watched, run `summarise(top_k)` for each top_k read, in the background."""
+        with self._lock:
+            seen, top_ks = self._watched.get(session_id, (-math.inf, set()))
+            if self._clock() - seen > self.watch_s:
+                self._watched.pop(session_id, None)
+                return False
+            if session_id in self._running:
+                self._again.add(session_id)
+                return True
+            self._running.add(session_id)
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vlmap-summaries")
+            pool = self._pool
+        pool.submit(self._summarise, session_id, sorted(top_ks), summarise)
+        return True
+
+    def _summarise(self, session_id: str, top_ks: list[int], summarise: Callable[[int], Any]) -> None:
+        while True:
+            try:
+                for top_k in top_ks:
+                    summarise(top_k)
+            except Exception as exc:  # e.g. the session was deleted meanwhile; the next poll will say so
+                log.info("background summary of %s skipped: %s", session_id, exc)
+            with self._lock:
+                if session_id not in self._again:
+                    self._running.discard(session_id)
+                    return
+                self._again.discard(session_id)
+
+    def close(self) -> None:
+        """Stop summarising: queued jobs are dropped, a running one finishes."""
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
 
 @dataclass
 class Services:
@@ -133,12 +194,13 @@ class Services:
     metrics: Metrics
     sensors: Sensors | None = None
     store: SessionStore | None = None
-    summaries: SummaryCache = field(default_factory=SummaryCache)
+    summaries: SummaryCache = field(init=False)
     limiter: CapacityLimiter = field(init=False)
     keyring: KeyRing = field(init=False)
     rate_limiter: RateLimiter = field(init=False)
 
     def __post_init__(self) -> None:
+        self.summaries = SummaryCache(watch_s=self.settings.summary_watch_s)
         self.limiter = CapacityLimiter(self.settings.worker_threads)
         self.keyring = KeyRing.load(self.settings.api_keys_file, self.settings.api_keys)
         self.rate_limiter = RateLimiter(self.settings.rate_limit_per_s, self.settings.rate_limit_burst)

@@ -363,7 +363,11 @@ def add_observations(
         result = store.apply_observations(
             session_id, batch.labels[keep], points=points, flat_idx=flat_idx, tp=batch.tp, fp=batch.fp
         )
-    belief = belief_out(store, cache, session_id) if with_summary else None
+    if with_summary:
+        belief = belief_out(store, cache, session_id)
+    else:
+        belief = None
+        cache.refresh(session_id, lambda top_k: belief_out(store, cache, session_id, top_k))
     return ObservationOut(
         version=result.version,
         stamp=batch.stamp,
@@ -433,6 +437,7 @@ def read_belief(
     if_none_match: str | None,
 ) -> Response | BeliefOut:
     info = _readable(store, principal, session_id)
+    cache.watch(session_id, top_k)
     tag = etag(info.version)
     if if_none_match is not None and tag in [t.strip() for t in if_none_match.split(",")]:
         return Response(status_code=304, headers={"ETag": tag})
