@@ -86,7 +86,7 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
         e.pop("input", None)  # echoing a whole scene graph back helps nobody
         e.pop("url", None)
     first = errors[0] if errors else {"loc": (), "msg": "invalid request"}
-    field = field_path(first.get("loc", ()))
+    field = field_path(tuple(first.get("loc", ())))
     message = f"{field}: {first.get('msg')}" if field else str(first.get("msg"))
     return JSONResponse(status_code=422, content=error_body("invalid_input", message, field or None, errors))
 

@@ -414,6 +414,9 @@ class _GivenHypotheses:
         msg = "the gt evaluation passes the cases' hypotheses to the sensor"
         raise RuntimeError(msg)
 
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name}
+
 
 def _predicts_mixture(grounder: Grounder) -> bool:
     return callable(getattr(grounder, "ground_mixture", None))

@@ -39,6 +39,7 @@ from app.belief.grid import VoxelGrid
 from app.belief.session import SensorModel, SessionInfo, check_target_label, new_session
 from app.errors import InvalidInput, LimitExceeded, UnsupportedMediaType
 from app.grounding.sensor import LanguageSensor
+from app.scene_graph.model import SceneGraph
 from app.settings import Settings
 from app.stores.base import SessionStore
 
@@ -104,7 +105,7 @@ def belief_out(
     info = info or store.info(session_id)
     cached = cache.get((session_id, info.version, top_k))
     if cached is not None:
-        return cached  # type: ignore[no-any-return]
+        return cached
     summary = store.summary(session_id, top_k=top_k)
     version = info.version if summary.version is None else summary.version
     body = BeliefOut(
@@ -130,7 +131,7 @@ def etag(version: int) -> str:
     return f'"v{version}"'
 
 
-def _grid(spec: GridSpec | None, scene_graph, settings: Settings) -> VoxelGrid:  # type: ignore[no-untyped-def]
+def _grid(spec: GridSpec | None, scene_graph: SceneGraph, settings: Settings) -> VoxelGrid:
     spec = spec or GridSpec()
     if (spec.min_corner is None) != (spec.max_corner is None):
         msg = "give both min_corner and max_corner, or neither"
@@ -147,7 +148,8 @@ def _grid(spec: GridSpec | None, scene_graph, settings: Settings) -> VoxelGrid: 
     if float(np.prod(shape.astype(np.float64))) > settings.max_grid_voxels:
         msg = f"the grid needs {int(np.prod(shape))} voxels, more than the limit {settings.max_grid_voxels}"
         raise LimitExceeded(msg, limit_name="max_grid_voxels")
-    return VoxelGrid(origin=tuple(low), shape=tuple(int(s) for s in shape), voxel_size=spec.voxel_size)
+    nx, ny, nz = (int(s) for s in shape)
+    return VoxelGrid(origin=tuple(low), shape=(nx, ny, nz), voxel_size=spec.voxel_size)
 
 
 def _label_map(raw: dict[str, str] | None) -> dict[int, str]:
@@ -353,7 +355,7 @@ def add_observations(
         inside = np.all((batch.voxels >= 0) & (batch.voxels < np.asarray(info.grid.shape)), axis=1)
         outside = int(len(inside) - inside.sum())
         flat_idx = info.grid.ijk_to_flat(batch.voxels[inside]).astype(np.int64)
-        keep = inside  # type: ignore[assignment]
+        keep = inside
     else:
         points = batch.points
     if batch.p_target is not None:
@@ -435,7 +437,7 @@ def read_belief(
     layers: bool,
     top_k: int,
     if_none_match: str | None,
-) -> Response | BeliefOut:
+) -> Response:
     info = _readable(store, principal, session_id)
     cache.watch(session_id, top_k)
     tag = etag(info.version)
@@ -481,4 +483,4 @@ async def get_belief(
     """The fused posterior: summary (MAP, top voxels, moments, entropy, mass per object) or the whole grid."""
     return await services.run(
         read_belief, store, services.summaries, principal, session_id, format, layers, top_k, if_none_match
-    )  # type: ignore[return-value]
+    )
