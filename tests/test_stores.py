@@ -757,3 +757,69 @@ def test_a_target_label_set_on_one_replica_is_seen_by_another(redis_url: str) ->
     assert first.info("shared").version == 2
     first.close()
     second.close()
+
+
+# -- mapped look-alikes: labels on a mapped object of the target's class carry no evidence -----------------
+
+LOOK_ALIKE_SCENE = SceneGraph.model_validate(
+    {
+        "objects": [
+            {"id": "c1", "label": "chair", "center": [1.0, 1.0, 0.45], "size": [0.5, 0.5, 0.9]},
+            {"id": "c2", "label": "Chairs", "center": [3.0, 1.2, 0.45], "size": [0.6, 0.4, 0.9], "yaw": 0.5},
+            {"id": "t", "label": "table", "center": [2.0, 2.5, 0.4], "size": [1.2, 0.8, 0.8]},
+        ],
+    }
+)
+
+
+def brute_force_look_alikes(session: Session) -> np.ndarray:
+    """Voxels whose centre lies in a box (yaw respected) of a mapped object of the target's class."""
+    centres = session.grid.centers()
+    inside = np.zeros(session.grid.n_voxels, dtype=bool)
+    for obj in session.scene_graph.objects:
+        if obj.label.lower().rstrip("s") != session.target_label:
+            continue
+        d = centres - np.asarray(obj.center)
+        c, s = np.cos(obj.yaw), np.sin(obj.yaw)
+        local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)
+        inside |= np.all(np.abs(local) <= 0.5 * np.asarray(obj.size), axis=1)
+    return np.flatnonzero(inside)
+
+
+def test_mapped_look_alikes_are_the_voxels_inside_same_class_boxes() -> None:
+    from app.belief.session import mapped_look_alikes
+
+    session = new_session("r", LOOK_ALIKE_SCENE, "chair", label_map=LABELS | {3: "chair"})
+    expected = brute_force_look_alikes(session)
+    assert len(expected) > 100
+    np.testing.assert_array_equal(mapped_look_alikes(session.grid, LOOK_ALIKE_SCENE, "chair"), expected)
+    assert len(mapped_look_alikes(session.grid, LOOK_ALIKE_SCENE, "backpack")) == 0
+    assert len(mapped_look_alikes(session.grid, LOOK_ALIKE_SCENE, "")) == 0
+
+
+def test_labels_on_mapped_look_alikes_leave_the_belief_alone(store: Any) -> None:
+    labels = LABELS | {3: "chair"}
+    session = new_session("r", LOOK_ALIKE_SCENE, "backpack", label_map=labels, session_id=uuid.uuid4().hex)
+    store.create(session)
+    chair_voxels = brute_force_look_alikes(dataclasses.replace(session, target_label="chair"))
+    free = np.setdiff1d(np.arange(session.grid.n_voxels), chair_voxels)[:50]
+    voxels = np.concatenate([chair_voxels, free])
+    # While the target is a backpack, the chairs are ordinary voxels: "chair" there is evidence against.
+    store.apply_observations(session.id, np.full(len(voxels), 3), flat_idx=voxels)
+    vis = store.read_layers(session.id).vis
+    assert np.all(vis[voxels] < 0)
+    # Once the target is a chair, the mapped chairs explain "chair" labels: no change on their voxels, while
+    # unmapped voxels labelled "chair" gain log(tp/fp) and voxels labelled otherwise lose.
+    store.set_target_label(session.id, "chair")
+    before = store.read_layers(session.id).vis.copy()
+    store.apply_observations(session.id, np.full(len(voxels), 3), flat_idx=voxels)
+    store.apply_observations(session.id, np.zeros(len(chair_voxels), dtype=int), flat_idx=chair_voxels)
+    after = store.read_layers(session.id).vis
+    np.testing.assert_array_equal(after[chair_voxels], before[chair_voxels])
+    tp, fp = session.sensor_model.tp, session.sensor_model.fp
+    np.testing.assert_allclose(after[free] - before[free], np.log(tp / fp), rtol=1e-5)
+    # A new scene graph without the chairs makes their voxels ordinary again.
+    store.replace_scene_graph(session.id, SceneGraph.model_validate({"objects": [LOOK_ALIKE_SCENE.objects[2]]}))
+    before = store.read_layers(session.id).vis.copy()
+    store.apply_observations(session.id, np.full(len(chair_voxels), 3), flat_idx=chair_voxels)
+    assert np.all(store.read_layers(session.id).vis[chair_voxels] > before[chair_voxels])

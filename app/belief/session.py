@@ -11,6 +11,15 @@ lower case, "_", "-", "/" and "." read as spaces, the last word made singular ("
 "shelves" -> "shelf"), a few synonyms folded ("sofa" -> "couch", "rucksack" -> "backpack", ...), and spaces
 dropped ("trash can" == "trashcan").
 
+Mapped look-alikes: the scene graph never holds the target (that is why the robot searches), but it may
+hold other objects of the target's class (the other chairs when the target is a chair). A class-level
+segmenter labels their voxels with the target's class whether or not the target is there, so at a voxel
+inside such an object's box P(y | t = i) = P(y | t != i) for every label y: the label is explained by the
+mapped object and equation (4) adds nothing there (`mapped_look_alikes`). Without this, every sighting of
+a known look-alike counted as a sighting of the target and, repeated, drove its vision log-weight to the
+clamp, taking the belief's mass from wherever the language put it. Detector probabilities (5) are taken
+as already instance-aware and are not filtered.
+
 Unknown target: a session may start with an empty target label ("": the class is not known yet, e.g.
 until the first utterance names it). Detector probabilities (equation (5)) need no class and fuse as
 usual; labelled observations (equation (4)) raise `Conflict` until `Session.set_target_label` (or a
@@ -31,7 +40,7 @@ import numpy as np
 
 from app.belief import fusion
 from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_MAX_VOXELS, DEFAULT_VOXEL_SIZE_M, VoxelGrid
-from app.belief.summary import ON_MARGIN_M, PosteriorSummary, summarize
+from app.belief.summary import ON_MARGIN_M, PosteriorSummary, cached_place_index, summarize
 from app.errors import Conflict, InvalidInput, LimitExceeded
 from app.grounding.lexical import singular
 from app.grounding.mixture import GaussianMixture
@@ -216,20 +225,46 @@ def language_log_likelihood(grid: VoxelGrid, mixture: GaussianMixture) -> np.nda
         raise InvalidInput(msg, "mixture") from exc
 
 
+def mapped_look_alikes(grid: VoxelGrid, scene_graph: SceneGraph, target_label: str) -> np.ndarray:
+    """Sorted flat indices of the voxels inside the boxes of scene-graph objects of the target's class.
+
+    Boxes are the objects' own (yaw respected, nothing added on top); an object smaller than a voxel gets the
+    voxel holding its centre, as in the summary's places. Empty when the target class is unknown.
+    """
+    key = label_key(target_label) if target_label else ""
+    parts = []
+    if key:
+        places = cached_place_index(grid, scene_graph, on_margin=0.0).objects  # one per object, in order
+        for place in places:
+            if label_key(place.label) != key:
+                continue
+            i, j, k = (np.arange(axis.start, axis.stop) for axis in place.slices)
+            flat = np.ravel_multi_index(np.meshgrid(i, j, k, indexing="ij"), grid.shape)  # (bx, by, bz)
+            parts.append(flat[place.mask] if place.mask is not None else flat.ravel())
+    return np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+
+
 class ObservationModel:
     """Turns robot messages (labels or detector probabilities at points or voxels) into vision increments.
 
-    Holds what that needs of a session: the grid, the target class, the label map and the default sensor
-    model; stores that keep the scene graph apart (Redis) build one without it. An empty `target_label`
-    means the class is not known yet: detections work, labelled observations raise `Conflict`.
+    Holds what that needs of a session: the grid, the target class, the label map, the default sensor
+    model and the voxels of mapped look-alikes (`mapped_look_alikes`, where labels carry no evidence);
+    stores that keep the scene graph apart (Redis) pass those voxels in. An empty `target_label` means the
+    class is not known yet: detections work, labelled observations raise `Conflict`.
     """
 
     def __init__(
-        self, grid: VoxelGrid, target_label: str, label_map: dict[int, str], sensor_model: SensorModel
+        self,
+        grid: VoxelGrid,
+        target_label: str,
+        label_map: dict[int, str],
+        sensor_model: SensorModel,
+        look_alikes: np.ndarray | None = None,
     ) -> None:
         self.grid = grid
         self.target_label = target_label
         self.sensor_model = sensor_model
+        self.look_alikes = np.zeros(0, np.int64) if look_alikes is None else np.asarray(look_alikes, np.int64)
         self._target_key = label_key(target_label)
         if target_label and not self._target_key:
             msg = f"the target label {target_label!r} names no class"
@@ -310,12 +345,18 @@ class ObservationModel:
         fp: float | None = None,
         max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
     ) -> IncrementBatch:
-        """Equation (4) for labelled voxels (points or flat indices); tp/fp override the default model."""
+        """Equation (4) for labelled voxels (points or flat indices); tp/fp override the default model.
+
+        Voxels of mapped look-alikes are left out: their labels are explained by the mapped object.
+        """
         is_target = self.is_target(labels)
         idx, kept = self.voxel_indices(len(is_target), points, flat_idx, max_voxels)
         tp = self.sensor_model.tp if tp is None else tp
         fp = self.sensor_model.fp if fp is None else fp
         increments = fusion.vision_increments(is_target[kept], tp, fp)
+        if len(self.look_alikes):
+            informative = ~np.isin(idx, self.look_alikes)
+            idx, increments = idx[informative], increments[informative]
         return IncrementBatch(idx, increments, int(len(kept) - kept.sum()))
 
     def detection_batch(
@@ -347,10 +388,25 @@ class Session:
     created_at: float
     updated_at: float
     belief: BeliefState
-    observer: ObservationModel = field(init=False, repr=False, compare=False)
+    _observer: ObservationModel | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        self.observer = ObservationModel(self.grid, self.target_label, self.label_map, self.sensor_model)
+        ObservationModel(self.grid, self.target_label, self.label_map, self.sensor_model)  # validates
+
+    @property
+    def observer(self) -> ObservationModel:
+        """Built on first use (finding the mapped look-alikes reads the scene graph)."""
+        if self._observer is None:
+            look_alikes = mapped_look_alikes(self.grid, self.scene_graph, self.target_label)
+            self._observer = ObservationModel(
+                self.grid, self.target_label, self.label_map, self.sensor_model, look_alikes
+            )
+        return self._observer
+
+    def replace_scene_graph(self, scene_graph: SceneGraph) -> None:
+        """Use a new scene graph for later utterances and look-alikes; stores bump the version."""
+        self.scene_graph = scene_graph
+        self._observer = None
 
     @property
     def version(self) -> int:
@@ -377,8 +433,8 @@ class Session:
         Vision evidence fused before stays in the layers: it was about the previous class, if any.
         """
         check_target_label(target_label, self.label_map)
-        self.observer = ObservationModel(self.grid, target_label, self.label_map, self.sensor_model)
         self.target_label = target_label
+        self._observer = None
 
     def observation_batch(
         self,

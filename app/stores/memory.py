@@ -289,7 +289,7 @@ class MemorySessionStore:
             idx = unpack_array(record["idx"]).astype(np.int64)
             session.belief.apply_increments(IncrementBatch(idx, unpack_array(record["inc"])))
         elif op == "scene_graph":
-            session.scene_graph = SceneGraph.model_validate(record["scene_graph"])
+            session.replace_scene_graph(SceneGraph.model_validate(record["scene_graph"]))
             session.belief.version += 1
         elif op == "target":
             session.set_target_label(record["label"])
@@ -462,7 +462,7 @@ class MemorySessionStore:
             now = self._clock()
             sg = scene_graph.model_dump(mode="json")
             entry.lsn = self._append({"op": "scene_graph", "sid": session_id, "t": now, "scene_graph": sg})
-            entry.session.scene_graph = scene_graph
+            entry.session.replace_scene_graph(scene_graph)
             entry.session.belief.version += 1
             entry.session.updated_at = now
             version = entry.session.version

@@ -4,7 +4,9 @@ Keys of session S (the hash tag {S} keeps them in one cluster slot):
 
     <prefix>:s:{S}:meta   hash: static (msgpack: robot, grid, target, label map, sensor model, limits,
                           creation time; only the target ever changes), sg (scene graph JSON), version,
-                          updated_at; `info` and `list` read this hash alone
+                          updated_at, look_alikes (int64 flat indices of the mapped objects of the
+                          target's class, `mapped_look_alikes`, rewritten with sg or the target);
+                          `info` and `list` read this hash alone
     <prefix>:s:{S}:lang   hash: block number -> float32 bytes of `block_voxels` voxels (absent = zeros)
     <prefix>:s:{S}:vis    hash: the same for the vision layer
     <prefix>:s:{S}:lock   the update lock
@@ -54,6 +56,7 @@ from app.belief.session import (
     UpdateResult,
     check_target_label,
     language_log_likelihood,
+    mapped_look_alikes,
 )
 from app.belief.summary import PosteriorSummary, summarize
 from app.errors import InvalidInput, NotFound, StoreUnavailable
@@ -102,6 +105,10 @@ def _static_meta(session: Session) -> dict[str, Any]:
     for key in ("scene_graph", "version", "updated_at"):
         del meta[key]
     return meta
+
+
+def _look_alikes(grid: VoxelGrid, scene_graph: SceneGraph, target_label: str) -> bytes:
+    return mapped_look_alikes(grid, scene_graph, target_label).astype("<i8").tobytes()
 
 
 def _info(session_id: str, static: dict[str, Any], version: bytes, updated_at: bytes) -> SessionInfo:
@@ -220,11 +227,14 @@ class RedisSessionStore:
                 with self._client.pipeline() as pipe:
                     try:
                         pipe.watch(meta_key)
-                        static_raw, version = pipe.hmget(meta_key, ["static", "version"])
+                        static_raw, version, look_alikes = pipe.hmget(
+                            meta_key, ["static", "version", "look_alikes"]
+                        )
                         if static_raw is None:
                             msg = f"no session {session_id!r}"
                             raise NotFound(msg)
                         static = msgpack.unpackb(static_raw, raw=False)
+                        static["look_alikes"] = look_alikes or b""
                         write = change(pipe, static, int(version) + 1)
                         now = self._clock()
                         pipe.multi()
@@ -259,6 +269,7 @@ class RedisSessionStore:
                     mapping={
                         "static": msgpack.packb(_static_meta(session), use_bin_type=True),
                         "sg": session.scene_graph.model_dump_json(),
+                        "look_alikes": _look_alikes(session.grid, session.scene_graph, session.target_label),
                         "version": session.version,
                         "updated_at": repr(now),
                     },
@@ -342,8 +353,11 @@ class RedisSessionStore:
         meta_key = self._key(session_id, "meta")
 
         def change(pipe: Any, static: dict[str, Any], version: int) -> Callable[[Any], int]:
+            grid = VoxelGrid.from_dict(static["grid"])
+            look_alikes = _look_alikes(grid, scene_graph, static["target_label"])
+
             def write(tx: Any) -> int:
-                tx.hset(meta_key, "sg", sg_json)
+                tx.hset(meta_key, mapping={"sg": sg_json, "look_alikes": look_alikes})
                 return version
 
             return write
@@ -357,10 +371,13 @@ class RedisSessionStore:
         def change(pipe: Any, static: dict[str, Any], version: int) -> Callable[[Any], int]:
             label_map = {int(k): str(v) for k, v in static["label_map"]}
             check_target_label(label, label_map)
-            packed = msgpack.packb({**static, "target_label": label}, use_bin_type=True)
+            stored = {k: v for k, v in static.items() if k != "look_alikes"}
+            packed = msgpack.packb({**stored, "target_label": label}, use_bin_type=True)
+            scene_graph = SceneGraph.model_validate_json(pipe.hget(meta_key, "sg"))
+            look_alikes = _look_alikes(VoxelGrid.from_dict(static["grid"]), scene_graph, label)
 
             def write(tx: Any) -> int:
-                tx.hset(meta_key, "static", packed)
+                tx.hset(meta_key, mapping={"static": packed, "look_alikes": look_alikes})
                 return version
 
             return write
@@ -392,6 +409,7 @@ class RedisSessionStore:
             static["target_label"],
             {int(k): str(v) for k, v in static["label_map"]},
             SensorModel(**static["sensor_model"]),
+            np.frombuffer(static.get("look_alikes", b""), dtype="<i8"),
         )
 
     def _apply_batch(
