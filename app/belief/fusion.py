@@ -28,6 +28,10 @@ on i, so only the ratio at the labelled voxel matters:
     vis_i  +=  log tp/fp                 if y = target class,                                       (4)
     vis_i  +=  log (1 - tp)/(1 - fp)     otherwise;  unobserved voxels are unchanged.
 
+Inside the box of a mapped object of the target's class (a look-alike the scene graph already holds), the
+label is explained by that object whether or not the target is there: P(y | t = i) = P(y | t != i), so (4)
+adds nothing (`app.belief.session.mapped_look_alikes`).
+
 A detector that outputs p = P(target at i | image) under its own prior pi0 enters through its likelihood
 ratio: dividing the posterior odds by the prior odds gives P(image | t = i) / P(image | t != i), so
 
