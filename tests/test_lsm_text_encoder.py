@@ -102,3 +102,18 @@ def test_lean_forward_equals_the_library_forward_on_a_padded_batch():
     assert actual.shape == expected.shape
     assert not bool(real.all())  # the batch really is padded
     torch.testing.assert_close(actual[real], expected[real], atol=2e-5, rtol=1e-4)
+
+
+def test_concurrent_encodes_through_a_small_cache_agree_with_sequential_ones(encoder):
+    """Requests share one encoder: eviction by one thread never breaks another's lookup."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    words = [f"object {i}" for i in range(24)]
+    expected = {w: encoder.encode([w])[0] for w in words}
+    small = TextEncoder(cache_size=3)
+    batches = [[words[(i * 5 + j) % len(words)] for j in range(4)] for i in range(60)]
+    with ThreadPoolExecutor(max_workers=6) as pool:
+        results = list(pool.map(small.encode, batches))
+    for batch, vectors in zip(batches, results, strict=True):
+        np.testing.assert_allclose(vectors, np.stack([expected[w] for w in batch]), atol=1e-5)
+    assert len(small._cache) <= 3

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import threading
 from collections import OrderedDict
 from collections.abc import Sequence
 from functools import lru_cache
@@ -78,23 +79,30 @@ class TextEncoder:
         self.max_tokens = max_tokens
         self.cache_size = cache_size
         self._cache: OrderedDict[str, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
         tokenizer, model = _load_transformer(self.model_dir)
         self._tokenizer = tokenizer
         self._forward = MiniLMForward.from_transformers(model)
 
     def encode(self, texts: Sequence[str], batch_size: int = 256) -> np.ndarray:
-        """Unit-norm embeddings, shape (len(texts), 384), float32; cached texts skip the transformer."""
-        missing = list(dict.fromkeys(t for t in texts if t not in self._cache))
+        """Unit-norm embeddings, shape (len(texts), 384), float32; cached texts skip the transformer.
+
+        Thread-safe: requests share one encoder; the cache is read and updated under a lock, the transformer
+        runs outside it.
+        """
+        with self._lock:
+            known = {t: self._cache[t] for t in texts if t in self._cache}
+        missing = list(dict.fromkeys(t for t in texts if t not in known))
         for start in range(0, len(missing), batch_size):
             chunk = missing[start : start + batch_size]
-            for text, vector in zip(chunk, self._embed(chunk), strict=True):
+            known.update(zip(chunk, self._embed(chunk), strict=True))
+        out = np.stack([known[t] for t in texts]) if texts else np.empty((0, EMBEDDING_DIM), np.float32)
+        with self._lock:
+            for text, vector in known.items():
                 self._cache[text] = vector
-        out = np.empty((len(texts), EMBEDDING_DIM), dtype=np.float32)
-        for row, text in enumerate(texts):
-            out[row] = self._cache[text]
-            self._cache.move_to_end(text)
-        while len(self._cache) > self.cache_size:
-            self._cache.popitem(last=False)
+                self._cache.move_to_end(text)
+            while len(self._cache) > self.cache_size:
+                self._cache.popitem(last=False)
         return out
 
     def _embed(self, texts: list[str]) -> np.ndarray:
