@@ -22,15 +22,17 @@ def project_to_pd(cov: np.ndarray, min_eigenvalue: float = MIN_EIGENVALUE_M2) ->
 
     Sigma' = V diag(max(lambda_i, floor)) V^T with (lambda, V) the eigen-decomposition of (Sigma + Sigma^T)/2.
     The reference repairs foundation-model covariances this way with floor 1e-2 m^2 before Cholesky.
+    A stack of matrices (..., 3, 3) is projected matrix by matrix.
     """
-    sym = 0.5 * (np.asarray(cov, dtype=np.float64) + np.asarray(cov, dtype=np.float64).T)
+    cov = np.asarray(cov, dtype=np.float64)
+    sym = 0.5 * (cov + np.swapaxes(cov, -1, -2))
     if not np.all(np.isfinite(sym)):
         msg = "covariance holds NaN or infinity"
         raise ValueError(msg)
     eigvals, eigvecs = np.linalg.eigh(sym)
     clipped = np.maximum(eigvals, min_eigenvalue)
-    out = (eigvecs * clipped) @ eigvecs.T
-    return 0.5 * (out + out.T)
+    out = (eigvecs * clipped[..., None, :]) @ np.swapaxes(eigvecs, -1, -2)
+    return 0.5 * (out + np.swapaxes(out, -1, -2))
 
 
 @dataclass(frozen=True)

@@ -85,10 +85,8 @@ class LSMGrounder:
             means = out.mean.double().numpy()  # (H, 3)
             covs = out.covariance.double().numpy()  # (H, 3, 3)
         scales = np.array([calibration_scale(self.calibration, Relation(h.relation)) for h in hypotheses])
-        return [
-            Gaussian(mean=m, covariance=project_to_pd(c * k))
-            for m, c, k in zip(means, covs, scales, strict=True)
-        ]
+        covs = project_to_pd(covs * scales[:, None, None])  # (H, 3, 3)
+        return [Gaussian(mean=m, covariance=c) for m, c in zip(means, covs, strict=True)]
 
     def describe(self) -> dict[str, Any]:
         return {
