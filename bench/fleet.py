@@ -230,6 +230,29 @@ def cpu_shares(pids: dict[str, int | None], run: Any, seconds: float) -> dict[st
     return {name: round((cpu_seconds(pid) - before[name]) / seconds, 2) for name, pid in pids.items()}
 
 
+_SERVER_ROUTES = {
+    "POST /observations": ('method="POST"', "/observations"),
+    "GET /belief": ('method="GET"', "/belief"),
+    "POST /utterances": ('method="POST"', "/utterances"),
+}
+
+
+def server_seconds(urls: list[str]) -> dict[str, tuple[float, float]]:
+    """(sum of seconds, count) per route from the replicas' request-duration histograms (/metrics)."""
+    totals = {route: [0.0, 0.0] for route in _SERVER_ROUTES}
+    for url in urls:
+        for line in httpx.get(f"{url}/metrics", timeout=10).text.splitlines():
+            if not line.startswith("vlmap_http_request_duration_seconds_"):
+                continue
+            for route, (method, path) in _SERVER_ROUTES.items():
+                if method in line and f'{path}"' in line:
+                    if line.startswith("vlmap_http_request_duration_seconds_sum"):
+                        totals[route][0] += float(line.rsplit(" ", 1)[1])
+                    elif line.startswith("vlmap_http_request_duration_seconds_count"):
+                        totals[route][1] += float(line.rsplit(" ", 1)[1])
+    return {route: (total, count) for route, (total, count) in totals.items()}
+
+
 def summarise(stats: Stats) -> dict[str, Any]:
     out = {}
     for route, samples in sorted(stats.latencies_ms.items()):
@@ -325,6 +348,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         pids |= {f"replica {i + 1}": proc.pid for i, proc in enumerate(procs)}
         if redis_server is not None and redis_server.proc is not None:
             pids["redis"] = redis_server.proc.pid
+        served_before = server_seconds(urls)
         results["cpu_cores_busy"] = cpu_shares(
             pids, lambda: asyncio.run(fleet.run(args.duration)), args.duration
         )
@@ -332,6 +356,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         print_table(f"Load ({args.duration:.0f} s)", results["load"], args.duration)
         busy = ", ".join(f"{name} {cores}" for name, cores in results["cpu_cores_busy"].items())
         print(f"Cores kept busy on average ({os.cpu_count()} on this machine): {busy}")
+        served_after = server_seconds(urls)
+        results["server_mean_ms"] = {
+            route: round(
+                1000 * (served_after[route][0] - before[0]) / max(1.0, served_after[route][1] - before[1]), 2
+            )
+            for route, before in served_before.items()
+        }
+        inside = ", ".join(f"{route} {ms} ms" for route, ms in results["server_mean_ms"].items())
+        print(f"Mean time inside the service (its own request histograms): {inside}")
 
         async def restart_redis() -> None:
             assert redis_server is not None
