@@ -40,8 +40,9 @@ from app.api.launcher import RedisServer, start_service, wait_ready
 from app.client import AsyncVLMapClient, VLMapClient
 
 TP, FP = 0.51, 0.5
-#: Robots send label ids, as a segmenter's output; every voxel is labelled as the target (see the docstring).
-LABEL_MAP = {"0": "floor", "1": "backpack"}
+#: Robots send label ids, as a segmenter does. The target class is absent from the scene graph (as the service
+#: assumes: no mapped look-alikes whose labels it would ignore); every voxel is labelled as the target.
+LABEL_MAP = {"0": "floor", "1": "wallet"}
 TARGET_ID = 1
 INCREMENT = math.log(TP / FP)
 SCENE = (
@@ -86,7 +87,7 @@ class Fleet:
                 session = client.create_session(
                     f"robot-{i}",
                     self.scene,
-                    target_label="backpack",
+                    target_label="wallet",
                     sensor_model={"tp": TP, "fp": FP},
                     label_map=LABEL_MAP,
                 )
@@ -137,7 +138,7 @@ class Fleet:
                 if step % utterance_every == 0:
                     await self._call(
                         "POST /utterances",
-                        client.send_utterance(log.session_id, "my backpack is on the desk"),
+                        client.send_utterance(log.session_id, "my wallet is on the desk"),
                     )
                 flat = self.batch_voxels(rng)
                 ijk = np.stack(np.unravel_index(flat, self.shape), axis=1).astype(np.int32)
