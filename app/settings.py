@@ -6,7 +6,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -55,6 +55,13 @@ class Settings(BaseSettings):
     data_dir: Path | None = Field(
         default=Path("var/sessions"), description="Where the memory store logs updates (None: not durable)."
     )
+
+    @field_validator("data_dir", mode="before")
+    @classmethod
+    def _empty_means_none(cls, value: object) -> object:
+        # VLMAP_DATA_DIR= (empty) must mean "not durable", not the working directory.
+        return None if isinstance(value, str) and not value.strip() else value
+
     session_ttl_s: float = Field(
         default=24 * 3600.0, gt=0, description="Sessions expire after this idle time."
     )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 
+import pytest
 from fastapi.testclient import TestClient
 
 from app.api.app import create_app
@@ -78,3 +79,10 @@ def test_the_default_service_uses_the_calibrated_builtin_proposer(scene_graph_di
     assert proposers[0]["checksum"].startswith("sha256:")
     weights = [h["weight"] for h in answer["hypotheses"]]
     assert len(weights) == 2 and abs(sum(weights) - 1) < 1e-9  # the room's two tables
+
+
+def test_an_empty_data_dir_means_not_durable(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("VLMAP_DATA_DIR", "")
+    assert Settings().data_dir is None
+    monkeypatch.setenv("VLMAP_DATA_DIR", "var/x")
+    assert str(Settings().data_dir) == "var/x"

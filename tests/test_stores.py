@@ -819,7 +819,9 @@ def test_labels_on_mapped_look_alikes_leave_the_belief_alone(store: Any) -> None
     tp, fp = session.sensor_model.tp, session.sensor_model.fp
     np.testing.assert_allclose(after[free] - before[free], np.log(tp / fp), rtol=1e-5)
     # A new scene graph without the chairs makes their voxels ordinary again.
-    store.replace_scene_graph(session.id, SceneGraph.model_validate({"objects": [LOOK_ALIKE_SCENE.objects[2]]}))
+    store.replace_scene_graph(
+        session.id, SceneGraph.model_validate({"objects": [LOOK_ALIKE_SCENE.objects[2]]})
+    )
     before = store.read_layers(session.id).vis.copy()
     store.apply_observations(session.id, np.full(len(chair_voxels), 3), flat_idx=chair_voxels)
     assert np.all(store.read_layers(session.id).vis[chair_voxels] > before[chair_voxels])
