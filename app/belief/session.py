@@ -264,7 +264,11 @@ class ObservationModel:
         self.grid = grid
         self.target_label = target_label
         self.sensor_model = sensor_model
-        self.look_alikes = np.zeros(0, np.int64) if look_alikes is None else np.asarray(look_alikes, np.int64)
+        # Over the whole grid, so that a batch is filtered by one lookup per voxel (np.isin cost ~10 ms/100k).
+        self._look_alike_mask: np.ndarray | None = None
+        if look_alikes is not None and len(look_alikes):
+            self._look_alike_mask = np.zeros(grid.n_voxels, dtype=bool)
+            self._look_alike_mask[np.asarray(look_alikes, dtype=np.int64)] = True
         self._target_key = label_key(target_label)
         if target_label and not self._target_key:
             msg = f"the target label {target_label!r} names no class"
@@ -354,8 +358,8 @@ class ObservationModel:
         tp = self.sensor_model.tp if tp is None else tp
         fp = self.sensor_model.fp if fp is None else fp
         increments = fusion.vision_increments(is_target[kept], tp, fp)
-        if len(self.look_alikes):
-            informative = ~np.isin(idx, self.look_alikes)
+        if self._look_alike_mask is not None:
+            informative = ~self._look_alike_mask[idx]
             idx, increments = idx[informative], increments[informative]
         return IncrementBatch(idx, increments, int(len(kept) - kept.sum()))
 

@@ -212,12 +212,14 @@ class RedisSessionStore:
         finally:
             self._release(keys=[key], args=[token])
 
-    def _update(self, session_id: str, change: Callable[[Any, dict[str, Any], int], Callable[[Any], R]]) -> R:
+    def _update(
+        self, session_id: str, change: Callable[[Any, dict[str, Any], int, np.ndarray], Callable[[Any], R]]
+    ) -> R:
         """Run one read-modify-write of a session under its lock and a WATCH on its meta hash.
 
-        `change(pipe, static_meta, new_version)` reads through `pipe` (immediate mode) and returns
-        `write(tx)`, which queues the writes inside MULTI and returns the result; the version bump,
-        `updated_at` and the expiry are queued here.
+        `change(pipe, static_meta, new_version, look_alikes)` reads through `pipe` (immediate mode) and
+        returns `write(tx)`, which queues the writes inside MULTI and returns the result; the version bump,
+        `updated_at` and the expiry are queued here. `look_alikes` are the stored `mapped_look_alikes`.
         """
         meta_key = self._key(session_id, "meta")
         with self._session_lock(session_id):
@@ -234,8 +236,8 @@ class RedisSessionStore:
                             msg = f"no session {session_id!r}"
                             raise NotFound(msg)
                         static = msgpack.unpackb(static_raw, raw=False)
-                        static["look_alikes"] = look_alikes or b""
-                        write = change(pipe, static, int(version) + 1)
+                        look_alike_idx = np.frombuffer(look_alikes or b"", dtype="<i8")
+                        write = change(pipe, static, int(version) + 1, look_alike_idx)
                         now = self._clock()
                         pipe.multi()
                         result = write(pipe)
@@ -352,7 +354,7 @@ class RedisSessionStore:
         sg_json = scene_graph.model_dump_json()
         meta_key = self._key(session_id, "meta")
 
-        def change(pipe: Any, static: dict[str, Any], version: int) -> Callable[[Any], int]:
+        def change(pipe: Any, static: dict[str, Any], version: int, _: np.ndarray) -> Callable[[Any], int]:
             grid = VoxelGrid.from_dict(static["grid"])
             look_alikes = _look_alikes(grid, scene_graph, static["target_label"])
 
@@ -368,11 +370,10 @@ class RedisSessionStore:
     def set_target_label(self, session_id: str, label: str) -> int:
         meta_key = self._key(session_id, "meta")
 
-        def change(pipe: Any, static: dict[str, Any], version: int) -> Callable[[Any], int]:
+        def change(pipe: Any, static: dict[str, Any], version: int, _: np.ndarray) -> Callable[[Any], int]:
             label_map = {int(k): str(v) for k, v in static["label_map"]}
             check_target_label(label, label_map)
-            stored = {k: v for k, v in static.items() if k != "look_alikes"}
-            packed = msgpack.packb({**stored, "target_label": label}, use_bin_type=True)
+            packed = msgpack.packb({**static, "target_label": label}, use_bin_type=True)
             scene_graph = SceneGraph.model_validate_json(pipe.hget(meta_key, "sg"))
             look_alikes = _look_alikes(VoxelGrid.from_dict(static["grid"]), scene_graph, label)
 
@@ -389,7 +390,9 @@ class RedisSessionStore:
         mixture = float64_mixture(mixture)
         lang_key = self._key(session_id, "lang")
 
-        def change(pipe: Any, static: dict[str, Any], version: int) -> Callable[[Any], UpdateResult]:
+        def change(
+            pipe: Any, static: dict[str, Any], version: int, _: np.ndarray
+        ) -> Callable[[Any], UpdateResult]:
             grid = VoxelGrid.from_dict(static["grid"])
             lang = self._assemble(pipe.hgetall(lang_key), grid.n_voxels)
             span = fusion.LayerLimits(**static["limits"]).lang_span
@@ -403,13 +406,13 @@ class RedisSessionStore:
 
         return self._update(session_id, change)
 
-    def _observer(self, static: dict[str, Any]) -> ObservationModel:
+    def _observer(self, static: dict[str, Any], look_alikes: np.ndarray) -> ObservationModel:
         return ObservationModel(
             VoxelGrid.from_dict(static["grid"]),
             static["target_label"],
             {int(k): str(v) for k, v in static["label_map"]},
             SensorModel(**static["sensor_model"]),
-            np.frombuffer(static.get("look_alikes", b""), dtype="<i8"),
+            look_alikes,
         )
 
     def _apply_batch(
@@ -417,8 +420,10 @@ class RedisSessionStore:
     ) -> UpdateResult:
         vis_key = self._key(session_id, "vis")
 
-        def change(pipe: Any, static: dict[str, Any], version: int) -> Callable[[Any], UpdateResult]:
-            observer = self._observer(static)
+        def change(
+            pipe: Any, static: dict[str, Any], version: int, look_alikes: np.ndarray
+        ) -> Callable[[Any], UpdateResult]:
+            observer = self._observer(static, look_alikes)
             limits = fusion.LayerLimits(**static["limits"])
             batch = make_batch(observer)
             n, b = observer.grid.n_voxels, self.block_voxels
