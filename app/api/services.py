@@ -147,8 +147,11 @@ class SummaryCache:
         if self.watch_s <= 0:
             return
         with self._lock:
+            now = self._clock()
             _, top_ks = self._watched.get(session_id, (0.0, set()))
-            self._watched[session_id] = (self._clock(), top_ks | {top_k})
+            self._watched[session_id] = (now, top_ks | {top_k})
+            if len(self._watched) > self.maxsize:  # forget sessions nobody read lately (deleted ones too)
+                self._watched = {s: w for s, w in self._watched.items() if now - w[0] <= self.watch_s}
 
     def refresh(self, session_id: str, summarise: Callable[[int], Any]) -> bool:
         """If the session is watched, run `summarise(top_k)` for each top_k read, in the background."""
