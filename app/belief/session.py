@@ -359,8 +359,9 @@ class ObservationModel:
         fp = self.sensor_model.fp if fp is None else fp
         increments = fusion.vision_increments(is_target[kept], tp, fp)
         if self._look_alike_mask is not None:
-            informative = ~self._look_alike_mask[idx]
-            idx, increments = idx[informative], increments[informative]
+            explained = self._look_alike_mask[idx]
+            if explained.any():
+                idx, increments = idx[~explained], increments[~explained]
         return IncrementBatch(idx, increments, int(len(kept) - kept.sum()))
 
     def detection_batch(
