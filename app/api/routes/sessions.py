@@ -350,12 +350,15 @@ def add_observations(
     info = _writable(store, principal, session_id)
     outside = 0
     flat_idx = points = None
-    keep = slice(None)
+    keep: slice | np.ndarray = slice(None)
     if batch.voxels is not None:
-        inside = np.all((batch.voxels >= 0) & (batch.voxels < np.asarray(info.grid.shape)), axis=1)
-        outside = int(len(inside) - inside.sum())
-        flat_idx = info.grid.ijk_to_flat(batch.voxels[inside]).astype(np.int64)
-        keep = inside
+        voxels, shape = batch.voxels, np.asarray(info.grid.shape)
+        # Per-column extremes first: a batch wholly inside the grid (the usual case) needs no row mask.
+        if len(voxels) and (voxels.min() < 0 or np.any(voxels.max(axis=0) >= shape)):
+            inside = np.all((voxels >= 0) & (voxels < shape), axis=1)
+            outside = int(len(inside) - inside.sum())
+            voxels, keep = voxels[inside], inside
+        flat_idx = info.grid.ijk_to_flat(voxels).astype(np.int64)
     else:
         points = batch.points
     if batch.p_target is not None:
