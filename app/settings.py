@@ -96,6 +96,12 @@ class Settings(BaseSettings):
         default=1, ge=1, description="Threads per LSM forward pass (requests run in parallel across workers)."
     )
     worker_threads: int = Field(default=8, ge=1, description="Threads for CPU-bound work off the event loop.")
+    grounding_processes: int = Field(
+        default=1,
+        ge=0,
+        description="Worker processes that ground utterances with the local models, so that a grounding "
+        "never holds the request process's interpreter lock (0: ground on the worker threads).",
+    )
 
 
 @lru_cache(maxsize=1)

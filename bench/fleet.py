@@ -299,6 +299,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--fault-duration", type=float, default=15.0, help="seconds of load around each fault"
     )
     parser.add_argument("--replicas", type=int, default=2)
+    parser.add_argument(
+        "--grounding-processes", type=int, default=1, help="grounding worker processes per replica"
+    )
     parser.add_argument("--store", choices=["redis", "memory"], default="redis")
     parser.add_argument("--faults", default="redis,kill,disconnect", help="comma list, or empty for none")
     parser.add_argument("--seed", type=int, default=0)
@@ -310,7 +313,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     scene = json.loads(SCENE.read_text())
     results: dict[str, Any] = {"config": vars(args) | {"json": str(args.json)}}
     with ExitStack() as stack:
-        env: dict[str, str] = {"VLMAP_RATE_LIMIT_PER_S": "0", "VLMAP_LOG_LEVEL": "WARNING"}
+        env: dict[str, str] = {
+            "VLMAP_RATE_LIMIT_PER_S": "0",
+            "VLMAP_LOG_LEVEL": "WARNING",
+            "VLMAP_GROUNDING_PROCESSES": str(args.grounding_processes),
+        }
         redis_server = None
         if args.store == "redis":
             binary = shutil.which("redis-server")

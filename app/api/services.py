@@ -7,7 +7,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
@@ -17,12 +17,15 @@ import anyio.to_thread
 from anyio import CapacityLimiter
 
 from app.api.auth import KeyRing, RateLimiter
+from app.api.grounding_workers import GroundingWorkers
 from app.api.observability import Metrics
 from app.errors import InvalidInput
 from app.grounding.geometric import FixedGrounder, GeometricGrounder
+from app.grounding.hypotheses import Hypothesis
 from app.grounding.interfaces import Grounder, HypothesisProposer
 from app.grounding.lexical import LexicalProposer
-from app.grounding.sensor import LanguageSensor, StageObserver
+from app.grounding.sensor import Grounding, LanguageSensor, StageObserver
+from app.scene_graph.model import SceneGraph
 from app.settings import Settings
 from app.stores import open_store
 from app.stores.base import SessionStore
@@ -197,6 +200,7 @@ class Services:
     metrics: Metrics
     sensors: Sensors | None = None
     store: SessionStore | None = None
+    grounding_workers: GroundingWorkers | None = None
     summaries: SummaryCache = field(init=False)
     limiter: CapacityLimiter = field(init=False)
     keyring: KeyRing = field(init=False)
@@ -216,3 +220,24 @@ class Services:
     async def run(self, func: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Run CPU-bound work in the worker pool so the event loop keeps serving other requests."""
         return await anyio.to_thread.run_sync(partial(func, *args, **kwargs), limiter=self.limiter)
+
+    async def ground(
+        self,
+        sensors: Sensors,
+        grounder: str | None,
+        proposer: str | None,
+        scene_graph: SceneGraph,
+        utterance: str,
+        hypotheses: Sequence[Hypothesis] | None = None,
+    ) -> tuple[Grounding, LanguageSensor]:
+        """Ground with the named parts (the defaults when None): in a worker process when one has them
+        loaded, else on a worker thread. Returns the grounding and the sensor that names its model."""
+        sensor = sensors.get(grounder, proposer)  # an unknown name is the caller's error, wherever it runs
+        grounder, proposer = grounder or sensors.default, proposer or sensors.default_proposer
+        workers = self.grounding_workers
+        if workers is None or not workers.serves(grounder, proposer):
+            return await self.run(sensor.ground, scene_graph, utterance, hypotheses), sensor
+        result = await workers.ground(grounder, proposer, scene_graph, utterance, hypotheses)
+        for stage, ms in result.timings_ms.items():  # the worker's own metrics stay in the worker
+            self.metrics.observe_stage(stage, ms / 1000.0)
+        return result, sensor

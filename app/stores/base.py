@@ -49,6 +49,10 @@ class SessionStore(Protocol):
         """The session's metadata (grid, label map, sensor model, version) without reading its layers."""
         ...
 
+    def scene_graph(self, session_id: str) -> SceneGraph:
+        """The session's current scene graph, without reading its layers."""
+        ...
+
     def list(self, robot_id: str | None = None) -> list[SessionInfo]:
         """Live sessions (of one robot, if given), oldest first."""
         ...

@@ -443,6 +443,10 @@ class MemorySessionStore:
         with self._locked(session_id) as entry:
             return entry.session.info()
 
+    def scene_graph(self, session_id: str) -> SceneGraph:
+        with self._locked(session_id) as entry:
+            return entry.session.scene_graph  # replaced whole, never changed in place: no copy needed
+
     def list(self, robot_id: str | None = None) -> list[SessionInfo]:
         self._check_open()
         self.purge_expired()

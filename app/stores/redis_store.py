@@ -319,6 +319,14 @@ class RedisSessionStore:
         return _info(session_id, msgpack.unpackb(static_raw, raw=False), version, updated_at)
 
     @_redis_errors
+    def scene_graph(self, session_id: str) -> SceneGraph:
+        raw = self._client.hget(self._key(session_id, "meta"), "sg")
+        if raw is None:
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        return SceneGraph.model_validate_json(raw)
+
+    @_redis_errors
     def list(self, robot_id: str | None = None) -> list[SessionInfo]:
         index = self._index_key(robot_id)
         now_ms = self._clock() * 1000

@@ -39,8 +39,11 @@ async def ground(
 ) -> GroundResponse:
     """Ground an utterance in a scene graph: weighted hypotheses and a Gaussian mixture over the target."""
     options = body.options or GroundOptions()
-    sensor = sensors.get(options.grounder, options.proposer)
-    return await services.run(ground_request, body, sensor, settings)
+    scene_graph = await services.run(checked_request, body, settings)
+    result, sensor = await services.ground(
+        sensors, options.grounder, options.proposer, scene_graph, body.utterance, caller_hypotheses(options)
+    )
+    return await services.run(respond, result, sensor, body.query_points)
 
 
 def resolve_scene_graph(
@@ -55,15 +58,21 @@ def resolve_scene_graph(
     return parse_scene_graph(payload, max_objects=settings.max_objects)
 
 
-def ground_request(body: GroundRequest, sensor: LanguageSensor, settings: Settings) -> GroundResponse:
+def checked_request(body: GroundRequest, settings: Settings) -> SceneGraph:
+    """The request's scene graph, native, after its limits are checked."""
     scene_graph = resolve_scene_graph(body.scene_graph, settings)
     if body.query_points is not None and len(body.query_points) > settings.max_query_points:
         msg = f"query_points: {len(body.query_points)} points exceed the limit of {settings.max_query_points}"
         raise LimitExceeded(msg, limit_name="max_query_points")
-    result = sensor.ground(scene_graph, body.utterance, caller_hypotheses(body.options))
+    return scene_graph
+
+
+def respond(
+    result: Grounding, sensor: LanguageSensor, query_points: list[list[float]] | None
+) -> GroundResponse:
     densities = None
-    if body.query_points:
-        densities = result.mixture.logpdf(np.asarray(body.query_points, dtype=np.float64)).tolist()
+    if query_points:
+        densities = result.mixture.logpdf(np.asarray(query_points, dtype=np.float64)).tolist()
     return to_response(result, sensor, densities)
 
 

@@ -38,7 +38,7 @@ from app.api.wire import MSGPACK_TYPES, ObservationBatch, check_batch_size, deco
 from app.belief.grid import VoxelGrid
 from app.belief.session import SensorModel, SessionInfo, check_target_label, new_session
 from app.errors import InvalidInput, LimitExceeded, UnsupportedMediaType
-from app.grounding.sensor import LanguageSensor
+from app.grounding.sensor import Grounding, LanguageSensor
 from app.scene_graph.model import SceneGraph
 from app.settings import Settings
 from app.stores.base import SessionStore
@@ -273,22 +273,15 @@ async def put_scene_graph(
     return await services.run(replace_scene_graph, store, principal, session_id, scene_graph, settings)
 
 
-def add_utterance(
-    store: SessionStore,
-    cache: SummaryCache,
-    principal: Principal,
-    session_id: str,
-    body: UtteranceIn,
-    sensor: LanguageSensor,
+def fuse_utterance(
+    store: SessionStore, cache: SummaryCache, info: SessionInfo, result: Grounding, sensor: LanguageSensor
 ) -> UtteranceOut:
-    _writable(store, principal, session_id)
-    session = store.get(session_id)
-    result = sensor.ground(session.scene_graph, body.utterance, caller_hypotheses(body.options))
-    store.apply_utterance(session_id, result.mixture)
+    """Add a grounded utterance to the belief; its target phrase names the session's target class if unset."""
+    store.apply_utterance(info.id, result.mixture)
     target = result.proposal.parse.target
-    if not session.target_label and target and names_a_class(target, session.label_map):
-        store.set_target_label(session_id, target)
-    belief = belief_out(store, cache, session_id)
+    if not info.target_label and target and names_a_class(target, info.label_map):
+        store.set_target_label(info.id, target)
+    belief = belief_out(store, cache, info.id)
     return UtteranceOut(grounding=to_response(result, sensor, None), belief=belief)
 
 
@@ -308,8 +301,12 @@ async def post_utterance(
 ) -> UtteranceOut:
     """Fuse an utterance: ground it in the session's scene graph and add its log-likelihood to every voxel."""
     options = body.options or GroundOptions()
-    sensor = sensors.get(options.grounder, options.proposer)
-    return await services.run(add_utterance, store, services.summaries, principal, session_id, body, sensor)
+    info = await services.run(_writable, store, principal, session_id)
+    scene_graph = await services.run(store.scene_graph, session_id)
+    result, sensor = await services.ground(
+        sensors, options.grounder, options.proposer, scene_graph, body.utterance, caller_hypotheses(options)
+    )
+    return await services.run(fuse_utterance, store, services.summaries, info, result, sensor)
 
 
 def decode_json_batch(raw: bytes, max_voxels: int) -> ObservationBatch:

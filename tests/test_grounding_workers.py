@@ -1,0 +1,114 @@
+"""Grounding in worker processes (`VLMAP_GROUNDING_PROCESSES`): the same answers as on threads, errors that
+cross the process boundary intact, and a pool that recovers from a dead worker."""
+
+from __future__ import annotations
+
+import os
+import signal
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from app.api.app import create_app
+from app.api.grounding_workers import GroundingWorkers
+from app.settings import Settings
+
+
+@pytest.fixture(scope="module")
+def pooled() -> Iterator[TestClient]:
+    """An app that grounds in one worker process (geometric grounder, lexical proposer: no model files)."""
+    settings = Settings(  # type: ignore[call-arg]
+        _env_file=None,
+        log_json=False,
+        data_dir=None,
+        rate_limit_per_s=0,
+        grounder="geometric",
+        grounders=["geometric", "fixed"],
+        proposer="lexical",
+        grounding_processes=1,
+    )
+    with TestClient(create_app(settings)) as client:
+        yield client
+
+
+def _ground(client: TestClient, scene_graph: Any, utterance: str, **extra: Any) -> Any:
+    return client.post("/v1/ground", json={"scene_graph": scene_graph, "utterance": utterance, **extra})
+
+
+def _without_timings(body: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in body.items() if k != "timings_ms"}
+
+
+def test_the_pool_starts_with_the_app_and_serves_the_local_parts_only(pooled: TestClient) -> None:
+    workers = pooled.app.state.services.grounding_workers  # type: ignore[attr-defined]
+    assert isinstance(workers, GroundingWorkers)
+    assert workers.serves("geometric", "builtin") and workers.serves("fixed", "builtin")
+    assert not workers.serves("lsm", "builtin")  # not loaded by this app
+    assert not workers.serves("geometric", "llm")  # network-bound: stays on threads
+
+
+@pytest.mark.parametrize(
+    "utterance, extra",
+    [
+        ("I left my backpack on the table", {}),
+        ("the mouse is on the desk", {"options": {"grounder": "fixed"}}),
+        ("the unicorn is on the spaceship", {}),  # no anchor: the broad prior
+    ],
+)
+def test_workers_answer_exactly_as_threads_do(
+    pooled: TestClient, client: TestClient, scene_graph_dict: dict, utterance: str, extra: dict
+) -> None:
+    in_worker = _ground(pooled, scene_graph_dict, utterance, **extra)
+    on_thread = _ground(client, scene_graph_dict, utterance, **extra)
+    assert in_worker.status_code == on_thread.status_code == 200, in_worker.text
+    assert _without_timings(in_worker.json()) == _without_timings(on_thread.json())
+    assert set(in_worker.json()["timings_ms"]) == set(on_thread.json()["timings_ms"])
+
+
+def test_a_domain_error_raised_in_a_worker_is_the_same_4xx(
+    pooled: TestClient, client: TestClient, scene_graph_dict: dict
+) -> None:
+    options = {"hypotheses": [{"anchor_ids": ["no-such-object"], "relation": "on"}]}
+    in_worker = _ground(pooled, scene_graph_dict, "the cup is on it", options=options)
+    on_thread = _ground(client, scene_graph_dict, "the cup is on it", options=options)
+    assert in_worker.status_code == on_thread.status_code == 422
+
+    def without_id(body: dict[str, Any]) -> dict[str, Any]:
+        return {k: v for k, v in body.items() if k != "request_id"}
+
+    assert without_id(in_worker.json()) == without_id(on_thread.json())
+    assert in_worker.json()["field"] == "options.hypotheses.0.anchor_ids"
+
+
+def test_worker_stage_timings_reach_the_service_metrics(pooled: TestClient, scene_graph_dict: dict) -> None:
+    assert _ground(pooled, scene_graph_dict, "the bag is on the desk").status_code == 200
+    metrics = pooled.get("/metrics").text
+    assert 'vlmap_inference_duration_seconds_count{stage="grounder"}' in metrics
+    assert 'vlmap_inference_duration_seconds_count{stage="grounder"} 0.0' not in metrics
+
+
+def test_utterances_fuse_through_the_workers(pooled: TestClient, scene_graph_dict: dict) -> None:
+    created = pooled.post(
+        "/v1/sessions", json={"robot_id": "robot-1", "scene_graph": scene_graph_dict, "target_label": "bag"}
+    )
+    assert created.status_code == 201, created.text
+    sid = created.json()["id"]
+    fused = pooled.post(f"/v1/sessions/{sid}/utterances", json={"utterance": "the bag is on the desk"})
+    assert fused.status_code == 200, fused.text
+    body = fused.json()
+    assert body["grounding"]["grounded"] is True
+    assert body["belief"]["version"] == 1
+
+
+def test_a_killed_worker_costs_one_503_then_a_new_pool_serves(
+    pooled: TestClient, scene_graph_dict: dict
+) -> None:
+    workers = pooled.app.state.services.grounding_workers  # type: ignore[attr-defined]
+    pool = workers._current_pool()
+    (pid,) = list(pool._processes)  # the pool's one worker
+    os.kill(pid, signal.SIGKILL)
+    statuses = [_ground(pooled, scene_graph_dict, "the bag is on the desk").status_code for _ in range(2)]
+    assert statuses == [503, 200], statuses
+    assert workers._current_pool() is not pool
