@@ -15,12 +15,14 @@ Keys of session S (the hash tag {S} keeps them in one cluster slot):
                           version once, fleet-wide (a reader uses it only if its version is current)
     <prefix>:sessions, <prefix>:robot:<R>   sorted sets of session ids scored by expiry time (ms)
 
-No lost updates across replicas: an update takes the session's lock (SET NX PX with a random token,
-released by a compare-and-delete script), then WATCHes the meta hash, reads what it needs, and writes the
-new blocks with version + 1 in one MULTI/EXEC. Every write touches the meta hash, so if a lock ever expired
-under a slow holder the other writer's EXEC fails and it retries from fresh data: the lock gives fairness
-and no busy retries, WATCH gives correctness. An observation batch reads and writes only the vision
-blocks its voxels fall in.
+No lost updates across replicas: an update reads what it needs (the meta hash and the blocks it will
+change) in one transaction, computes, and commits with one script call (`_COMMIT_SCRIPT`) that writes only
+if the session is still at the version it read and no other writer holds the session's lock; else it
+reads again. Every update is then one read and one write round trip, and one fsync on an `appendfsync
+always` Redis (a lock taken and released around each update had cost two more writes, each fsynced). A
+writer that keeps losing (a slow utterance among fast observation streams) takes the session's lock (SET
+NX PX with a random token), which makes every other writer's commit fail until it is done. An observation
+batch reads and writes only the vision blocks its voxels fall in.
 
 Expiry: every write sets the same absolute expiry (PEXPIREAT now + ttl) on all of the session's keys and
 its sorted-set scores; Redis drops the keys, listings skip and prune the ids.
@@ -70,8 +72,36 @@ DEFAULT_BLOCK_VOXELS = 1 << 16
 DEFAULT_LOCK_TTL_S = 30.0
 #: How long an update waits for a session's lock before giving up with StoreUnavailable (seconds).
 DEFAULT_LOCK_WAIT_S = 10.0
-#: Transactions retried when a lock expired under a slow holder and the meta hash changed.
-_MAX_WATCH_RETRIES = 20
+#: Commits retried under the lock (only if the lock expired under a slow holder and another writer won).
+_MAX_LOCKED_ATTEMPTS = 20
+
+#: Optimistic attempts before an update takes the session's lock.
+_OPTIMISTIC_ATTEMPTS = 3
+
+# KEYS: meta, lock, the two index sets, lang, vis, summary, then the hashes written.
+# ARGV: version read, lock token ("" without the lock), updated_at, index score, expiry ms ("" for none),
+# session id, number of hashes written, then per hash: its number of fields, then field, value, ...
+_COMMIT_SCRIPT = """
+local version = redis.call('HGET', KEYS[1], 'version')
+if not version then return -1 end
+if version ~= ARGV[1] then return -2 end
+local holder = redis.call('GET', KEYS[2])
+if holder and holder ~= ARGV[2] then return -2 end
+local at = 8
+for k = 8, 7 + tonumber(ARGV[7]) do
+    local n = tonumber(ARGV[at])
+    redis.call('HSET', KEYS[k], unpack(ARGV, at + 1, at + 2 * n))
+    at = at + 1 + 2 * n
+end
+local new = tonumber(version) + 1
+redis.call('HSET', KEYS[1], 'version', new, 'updated_at', ARGV[3])
+if ARGV[5] ~= '' then
+    for _, k in ipairs({1, 5, 6, 7}) do redis.call('PEXPIREAT', KEYS[k], ARGV[5]) end
+end
+redis.call('ZADD', KEYS[3], ARGV[4], ARGV[6])
+redis.call('ZADD', KEYS[4], ARGV[4], ARGV[6])
+return new
+"""
 
 _RELEASE_SCRIPT = """
 if redis.call('get', KEYS[1]) == ARGV[1] then
@@ -82,6 +112,12 @@ return 0
 
 P = ParamSpec("P")
 R = TypeVar("R")
+#: A read queued beside the meta hash: (redis-py command name, key, *arguments).
+Read = tuple[Any, ...]
+#: Hashes an update writes: key -> {field: value}.
+Writes = dict[str, dict[str, Any]]
+#: change(static meta, new version, look-alikes, read results) -> (writes, result)
+Change = Callable[[dict[str, Any], int, np.ndarray, list[Any]], tuple[Writes, R]]
 
 
 def _redis_errors(method: Callable[P, R]) -> Callable[P, R]:
@@ -161,6 +197,7 @@ class RedisSessionStore:
             url, socket_timeout=socket_timeout_s, socket_connect_timeout=socket_timeout_s
         )
         self._release = self._client.register_script(_RELEASE_SCRIPT)
+        self._commit = self._client.register_script(_COMMIT_SCRIPT)
 
     # -- keys and small helpers -----------------------------------------------------------------------------
 
@@ -197,7 +234,8 @@ class RedisSessionStore:
         return layer
 
     @contextlib.contextmanager
-    def _session_lock(self, session_id: str) -> Iterator[None]:
+    def _session_lock(self, session_id: str) -> Iterator[str]:
+        """Hold the session's lock; yields its token."""
         key, token = self._key(session_id, "lock"), uuid.uuid4().hex
         deadline = time.monotonic() + self.lock_wait_s
         pause = 0.001
@@ -208,47 +246,63 @@ class RedisSessionStore:
             time.sleep(pause)
             pause = min(2 * pause, 0.05)
         try:
-            yield
+            yield token
         finally:
             self._release(keys=[key], args=[token])
 
-    def _update(
-        self, session_id: str, change: Callable[[Any, dict[str, Any], int, np.ndarray], Callable[[Any], R]]
-    ) -> R:
-        """Run one read-modify-write of a session under its lock and a WATCH on its meta hash.
+    def _update(self, session_id: str, change: Change[R], reads: Sequence[Read] = ()) -> R:
+        """One read-compute-commit of a session (see the module docstring).
 
-        `change(pipe, static_meta, new_version, look_alikes)` reads through `pipe` (immediate mode) and
-        returns `write(tx)`, which queues the writes inside MULTI and returns the result; the version bump,
-        `updated_at` and the expiry are queued here. `look_alikes` are the stored `mapped_look_alikes`.
+        `reads` are (command, key, *args) read in the same transaction as the meta hash; `change(static,
+        new_version, look_alikes, results)` gets their results and returns (hashes to write, result).
+        `look_alikes` are the stored `mapped_look_alikes`.
         """
-        meta_key = self._key(session_id, "meta")
-        with self._session_lock(session_id):
-            from redis.exceptions import WatchError
-
-            for _ in range(_MAX_WATCH_RETRIES):
-                with self._client.pipeline() as pipe:
-                    try:
-                        pipe.watch(meta_key)
-                        static_raw, version, look_alikes = pipe.hmget(
-                            meta_key, ["static", "version", "look_alikes"]
-                        )
-                        if static_raw is None:
-                            msg = f"no session {session_id!r}"
-                            raise NotFound(msg)
-                        static = msgpack.unpackb(static_raw, raw=False)
-                        look_alike_idx = np.frombuffer(look_alikes or b"", dtype="<i8")
-                        write = change(pipe, static, int(version) + 1, look_alike_idx)
-                        now = self._clock()
-                        pipe.multi()
-                        result = write(pipe)
-                        pipe.hset(meta_key, mapping={"version": int(version) + 1, "updated_at": repr(now)})
-                        self._touch(pipe, session_id, static["robot_id"], now)
-                        pipe.execute()
-                        return result
-                    except WatchError:
-                        continue
+        for _ in range(_OPTIMISTIC_ATTEMPTS):
+            committed = self._attempt(session_id, change, reads, token="")
+            if committed is not None:
+                return committed[0]
+        with self._session_lock(session_id) as token:
+            for _ in range(_MAX_LOCKED_ATTEMPTS):
+                committed = self._attempt(session_id, change, reads, token)
+                if committed is not None:
+                    return committed[0]
         msg = f"session {session_id!r} kept changing during an update; try again"
         raise StoreUnavailable(msg)
+
+    def _attempt(
+        self, session_id: str, change: Change[R], reads: Sequence[Read], token: str
+    ) -> tuple[R] | None:
+        """Read, compute, commit once; None when another writer came first."""
+        meta_key = self._key(session_id, "meta")
+        with self._client.pipeline(transaction=True) as pipe:
+            pipe.hmget(meta_key, ["static", "version", "look_alikes"])
+            for command, key, *arguments in reads:
+                getattr(pipe, command)(key, *arguments)
+            (static_raw, version, look_alikes), *results = pipe.execute()
+        if static_raw is None:
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        static = msgpack.unpackb(static_raw, raw=False)
+        look_alike_idx = np.frombuffer(look_alikes or b"", dtype="<i8")
+        writes, result = change(static, int(version) + 1, look_alike_idx, results)
+        now = self._clock()
+        expiry = self._expiry_ms(now)
+        finite = math.isfinite(expiry)
+        index_keys = [self._index_key(), self._index_key(static["robot_id"])]
+        keys = [meta_key, self._key(session_id, "lock"), *index_keys]
+        keys += [self._key(session_id, part) for part in ("lang", "vis", "summary")]
+        args: list[Any] = [int(version), token, repr(now), int(expiry) if finite else "inf"]
+        args += [int(expiry) if finite else "", session_id, len(writes)]
+        for key, fields in writes.items():
+            keys.append(key)
+            args.append(len(fields))
+            for field_name, value in fields.items():
+                args += [field_name, value]
+        outcome = self._commit(keys=keys, args=args)
+        if outcome == -1:
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        return None if outcome == -2 else (result,)
 
     # -- SessionStore ---------------------------------------------------------------------------------------
 
@@ -362,15 +416,10 @@ class RedisSessionStore:
         sg_json = scene_graph.model_dump_json()
         meta_key = self._key(session_id, "meta")
 
-        def change(pipe: Any, static: dict[str, Any], version: int, _: np.ndarray) -> Callable[[Any], int]:
+        def change(static: dict[str, Any], version: int, _: np.ndarray, __: list[Any]) -> tuple[Writes, int]:
             grid = VoxelGrid.from_dict(static["grid"])
             look_alikes = _look_alikes(grid, scene_graph, static["target_label"])
-
-            def write(tx: Any) -> int:
-                tx.hset(meta_key, mapping={"sg": sg_json, "look_alikes": look_alikes})
-                return version
-
-            return write
+            return {meta_key: {"sg": sg_json, "look_alikes": look_alikes}}, version
 
         return self._update(session_id, change)
 
@@ -378,20 +427,17 @@ class RedisSessionStore:
     def set_target_label(self, session_id: str, label: str) -> int:
         meta_key = self._key(session_id, "meta")
 
-        def change(pipe: Any, static: dict[str, Any], version: int, _: np.ndarray) -> Callable[[Any], int]:
+        def change(
+            static: dict[str, Any], version: int, _: np.ndarray, read: list[Any]
+        ) -> tuple[Writes, int]:
             label_map = {int(k): str(v) for k, v in static["label_map"]}
             check_target_label(label, label_map)
             packed = msgpack.packb({**static, "target_label": label}, use_bin_type=True)
-            scene_graph = SceneGraph.model_validate_json(pipe.hget(meta_key, "sg"))
+            scene_graph = SceneGraph.model_validate_json(read[0])
             look_alikes = _look_alikes(VoxelGrid.from_dict(static["grid"]), scene_graph, label)
+            return {meta_key: {"static": packed, "look_alikes": look_alikes}}, version
 
-            def write(tx: Any) -> int:
-                tx.hset(meta_key, mapping={"static": packed, "look_alikes": look_alikes})
-                return version
-
-            return write
-
-        return self._update(session_id, change)
+        return self._update(session_id, change, reads=[("hget", meta_key, "sg")])
 
     @_redis_errors
     def apply_utterance(self, session_id: str, mixture: GaussianMixture) -> UpdateResult:
@@ -399,20 +445,15 @@ class RedisSessionStore:
         lang_key = self._key(session_id, "lang")
 
         def change(
-            pipe: Any, static: dict[str, Any], version: int, _: np.ndarray
-        ) -> Callable[[Any], UpdateResult]:
+            static: dict[str, Any], version: int, _: np.ndarray, read: list[Any]
+        ) -> tuple[Writes, UpdateResult]:
             grid = VoxelGrid.from_dict(static["grid"])
-            lang = self._assemble(pipe.hgetall(lang_key), grid.n_voxels)
+            lang = self._assemble(read[0], grid.n_voxels)
             span = fusion.LayerLimits(**static["limits"]).lang_span
             fusion.apply_language(lang, language_log_likelihood(grid, mixture), span)
+            return {lang_key: self._blocks_of(lang)}, UpdateResult(session_id, version, grid.n_voxels)
 
-            def write(tx: Any) -> UpdateResult:
-                tx.hset(lang_key, mapping=self._blocks_of(lang))
-                return UpdateResult(session_id, version, grid.n_voxels)
-
-            return write
-
-        return self._update(session_id, change)
+        return self._update(session_id, change, reads=[("hgetall", lang_key)])
 
     def _observer(self, static: dict[str, Any], look_alikes: np.ndarray) -> ObservationModel:
         return ObservationModel(
@@ -424,41 +465,46 @@ class RedisSessionStore:
         )
 
     def _apply_batch(
-        self, session_id: str, make_batch: Callable[[ObservationModel], IncrementBatch]
+        self,
+        session_id: str,
+        make_batch: Callable[[ObservationModel], IncrementBatch],
+        flat_idx: np.ndarray | None,
     ) -> UpdateResult:
         vis_key = self._key(session_id, "vis")
+        b = self.block_voxels
+        # Voxel indices given: their blocks are read with the meta hash, in one round trip.
+        prefetch = [] if flat_idx is None else [str(i) for i in np.unique(np.asarray(flat_idx) // b)]
 
         def change(
-            pipe: Any, static: dict[str, Any], version: int, look_alikes: np.ndarray
-        ) -> Callable[[Any], UpdateResult]:
+            static: dict[str, Any], version: int, look_alikes: np.ndarray, read: list[Any]
+        ) -> tuple[Writes, UpdateResult]:
             observer = self._observer(static, look_alikes)
             limits = fusion.LayerLimits(**static["limits"])
             batch = make_batch(observer)
-            n, b = observer.grid.n_voxels, self.block_voxels
+            n = observer.grid.n_voxels
             touched = np.flatnonzero(np.bincount(batch.flat_idx // b, minlength=self._n_blocks(n)))  # (T,)
             names = [str(i) for i in touched]
-            stored = pipe.hmget(vis_key, names) if names else []
+            stored = dict(zip(prefetch, read[0], strict=True)) if prefetch else {}
+            missing = [name for name in names if name not in stored]
+            if missing:  # points mapped to voxels here; a concurrent change makes the commit fail and retry
+                stored.update(zip(missing, self._client.hmget(vis_key, missing), strict=True))
             local = np.zeros(len(touched) * b, dtype=fusion.LAYER_DTYPE)  # touched blocks side by side
-            for slot, data in enumerate(stored):
+            for slot, name in enumerate(names):
+                data = stored[name]
                 if data is not None:
                     local[slot * b : slot * b + len(data) // 4] = np.frombuffer(data, dtype="<f4")
             slot_of = np.zeros(self._n_blocks(n), dtype=np.int64)
             slot_of[touched] = np.arange(len(touched))
             local_idx = slot_of[batch.flat_idx // b] * b + batch.flat_idx % b
             fusion.apply_increments(local, local_idx, batch.increments, limits.vis_min, limits.vis_max)
+            blocks = {}
+            for slot, i in enumerate(touched):
+                length = min(b, n - int(i) * b)
+                blocks[names[slot]] = local[slot * b : slot * b + length].tobytes()
+            result = UpdateResult(session_id, version, len(batch.flat_idx), batch.n_outside)
+            return ({vis_key: blocks} if blocks else {}), result
 
-            def write(tx: Any) -> UpdateResult:
-                if names:
-                    blocks = {}
-                    for slot, i in enumerate(touched):
-                        length = min(b, n - int(i) * b)
-                        blocks[names[slot]] = local[slot * b : slot * b + length].tobytes()
-                    tx.hset(vis_key, mapping=blocks)
-                return UpdateResult(session_id, version, len(batch.flat_idx), batch.n_outside)
-
-            return write
-
-        return self._update(session_id, change)
+        return self._update(session_id, change, reads=[("hmget", vis_key, prefetch)] if prefetch else [])
 
     @_redis_errors
     def apply_observations(
@@ -476,6 +522,7 @@ class RedisSessionStore:
             lambda observer: observer.observation_batch(
                 labels, points=points, flat_idx=flat_idx, tp=tp, fp=fp, max_voxels=self.max_batch_voxels
             ),
+            flat_idx,
         )
 
     @_redis_errors
@@ -493,6 +540,7 @@ class RedisSessionStore:
             lambda observer: observer.detection_batch(
                 p_target, points=points, flat_idx=flat_idx, prior=prior, max_voxels=self.max_batch_voxels
             ),
+            flat_idx,
         )
 
     @_redis_errors
