@@ -136,6 +136,14 @@ def _redis_errors(method: Callable[P, R]) -> Callable[P, R]:
     return wrapper
 
 
+@functools.lru_cache(maxsize=64)
+def parse_scene_graph_json(raw: bytes) -> SceneGraph:
+    """A stored scene graph, parsed once per distinct JSON: every summary and utterance reads the session's
+    scene graph, and parsing a 60-object one took 1.7 ms, half of reading the session. Callers share the
+    object and never change it (a replacement is a new scene graph)."""
+    return SceneGraph.model_validate_json(raw)
+
+
 def _static_meta(session: Session) -> dict[str, Any]:
     meta = session.meta()
     for key in ("scene_graph", "version", "updated_at"):
@@ -354,7 +362,7 @@ class RedisSessionStore:
     def _session_from(self, meta: dict[bytes, bytes], lang: np.ndarray, vis: np.ndarray) -> Session:
         static = msgpack.unpackb(meta[b"static"], raw=False)
         full = {**static, "version": int(meta[b"version"]), "updated_at": float(meta[b"updated_at"])}
-        return Session.from_meta(full, lang, vis, scene_graph=SceneGraph.model_validate_json(meta[b"sg"]))
+        return Session.from_meta(full, lang, vis, scene_graph=parse_scene_graph_json(meta[b"sg"]))
 
     @_redis_errors
     def get(self, session_id: str) -> Session:
@@ -378,7 +386,7 @@ class RedisSessionStore:
         if raw is None:
             msg = f"no session {session_id!r}"
             raise NotFound(msg)
-        return SceneGraph.model_validate_json(raw)
+        return parse_scene_graph_json(raw)
 
     @_redis_errors
     def list(self, robot_id: str | None = None) -> list[SessionInfo]:
@@ -433,7 +441,7 @@ class RedisSessionStore:
             label_map = {int(k): str(v) for k, v in static["label_map"]}
             check_target_label(label, label_map)
             packed = msgpack.packb({**static, "target_label": label}, use_bin_type=True)
-            scene_graph = SceneGraph.model_validate_json(read[0])
+            scene_graph = parse_scene_graph_json(read[0])
             look_alikes = _look_alikes(VoxelGrid.from_dict(static["grid"]), scene_graph, label)
             return {meta_key: {"static": packed, "look_alikes": look_alikes}}, version
 
