@@ -1,6 +1,7 @@
 """`LSMGrounder`: the trained LSM behind the `Grounder` protocol, one Gaussian per hypothesis.
 
-All hypotheses of a call go through the model in one batched forward pass. The checkpoint's post-hoc
+All hypotheses of a call go through the model in one batched forward pass (`LSMInference`: the model's
+forward pass in fewer tensor operations, equal to it to float32 rounding). The checkpoint's post-hoc
 calibration (a covariance scale c_r per relation, fitted on val_seen so that ANEES_r = 3 there) is applied
 to every output: Sigma <- c_r Sigma.
 """
@@ -19,6 +20,7 @@ from app.grounding.hypotheses import Hypothesis
 from app.grounding.mixture import Gaussian, project_to_pd
 from app.grounding.relations import Relation
 from app.lsm.features import PackedSamples, SceneArrays, make_sample
+from app.lsm.inference import LSMInference
 from app.lsm.model import CONFIG_NAME, WEIGHTS_NAME, LanguageSensorModel, load_checkpoint
 from app.lsm.text_encoder import TextEncoder, file_sha256
 from app.scene_graph.model import SceneGraph
@@ -41,6 +43,7 @@ class LSMGrounder:
         self, model: LanguageSensorModel, meta: dict[str, Any], encoder: TextEncoder, weights_sha256: str
     ) -> None:
         self.model = model.eval()
+        self.inference = LSMInference(self.model)
         self.meta = meta
         self.encoder = encoder
         self.weights_sha256 = weights_sha256
@@ -79,11 +82,9 @@ class LSMGrounder:
         cfg = self.model.cfg
         scene = SceneArrays.of(scene_graph)
         samples = [make_sample(scene, h.anchor_ids, h.relation, utterance, cfg) for h in hypotheses]
-        batch = PackedSamples(samples, self.encoder.encode).batch()
-        with torch.inference_mode():
-            out = self.model(batch)
-            means = out.mean.double().numpy()  # (H, 3)
-            covs = out.covariance.double().numpy()  # (H, 3, 3)
+        out = self.inference(PackedSamples(samples, self.encoder.encode))
+        means = out.mean.double().numpy()  # (H, 3)
+        covs = out.covariance.double().numpy()  # (H, 3, 3)
         scales = np.array([calibration_scale(self.calibration, Relation(h.relation)) for h in hypotheses])
         covs = project_to_pd(covs * scales[:, None, None])  # (H, 3, 3)
         return [Gaussian(mean=m, covariance=c) for m, c in zip(means, covs, strict=True)]
