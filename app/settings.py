@@ -96,7 +96,7 @@ class Settings(BaseSettings):
         default=1, ge=1, description="Threads per LSM forward pass (requests run in parallel across workers)."
     )
     worker_threads: int = Field(default=8, ge=1, description="Threads for CPU-bound work off the event loop.")
-    grounding_processes: int = Field(
+    worker_processes: int = Field(
         default=1,
         ge=0,
         description="Worker processes that ground utterances with the local models, so that a grounding "

@@ -300,7 +300,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument("--replicas", type=int, default=2)
     parser.add_argument(
-        "--grounding-processes", type=int, default=1, help="grounding worker processes per replica"
+        "--worker-processes", type=int, default=1, help="grounding worker processes per replica"
     )
     parser.add_argument("--store", choices=["redis", "memory"], default="redis")
     parser.add_argument("--faults", default="redis,kill,disconnect", help="comma list, or empty for none")
@@ -316,7 +316,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         env: dict[str, str] = {
             "VLMAP_RATE_LIMIT_PER_S": "0",
             "VLMAP_LOG_LEVEL": "WARNING",
-            "VLMAP_GROUNDING_PROCESSES": str(args.grounding_processes),
+            "VLMAP_WORKER_PROCESSES": str(args.worker_processes),
         }
         redis_server = None
         if args.store == "redis":

@@ -19,8 +19,8 @@ from app.settings import Settings
 RESOURCES = Path(__file__).parent / "resources"
 
 # Tests build dozens of apps and services: a grounding worker process for each would load its models again
-# (seconds apiece). They ground on threads; tests/test_grounding_workers.py tests the worker processes.
-os.environ.setdefault("VLMAP_GROUNDING_PROCESSES", "0")
+# (seconds apiece). They ground on threads; tests/test_workers.py tests the worker processes.
+os.environ.setdefault("VLMAP_WORKER_PROCESSES", "0")
 
 
 def load_resource_json(relative: str) -> Any:

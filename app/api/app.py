@@ -16,12 +16,12 @@ from app import __version__
 from app.api.content_types import FormAsJsonMiddleware
 from app.api.deps import reject_unknown_query
 from app.api.errors import install_error_handlers
-from app.api.grounding_workers import GroundingWorkers
 from app.api.limits import BodySizeLimitMiddleware
 from app.api.observability import Metrics, RequestContextMiddleware
 from app.api.routes import ground, health, metrics, models, scene_graphs, sessions
 from app.api.schemas import ObservationBatchJson, PackedArray, SensorModelIn
 from app.api.services import Sensors, Services, build_sensors
+from app.api.workers import WorkerProcesses
 from app.errors import VLMapError
 from app.settings import Settings, get_settings
 from app.stores.base import SessionStore
@@ -89,10 +89,10 @@ def create_app(
             services.store = await anyio.to_thread.run_sync(services.open_store)
         if services.sensors is None:
             services.sensors = await anyio.to_thread.run_sync(build_sensors, settings, services.metrics)
-            if settings.grounding_processes > 0:  # workers load the same models (injected sensors stay here)
-                workers = GroundingWorkers(settings, settings.grounding_processes)
+            if settings.worker_processes > 0:  # workers load the same models (injected sensors stay here)
+                workers = WorkerProcesses(settings, settings.worker_processes)
                 await anyio.to_thread.run_sync(workers.start)
-                services.grounding_workers = workers
+                services.worker_processes = workers
         await anyio.to_thread.run_sync(freeze_startup_objects)
         log.info("ready", extra={"grounder": services.sensors.default, "store": settings.store})
         async with anyio.create_task_group() as tasks:
@@ -102,9 +102,9 @@ def create_app(
             finally:
                 tasks.cancel_scope.cancel()
                 await anyio.to_thread.run_sync(services.summaries.close)  # before the store it reads
-                if services.grounding_workers is not None:
-                    await anyio.to_thread.run_sync(services.grounding_workers.close)
-                    services.grounding_workers = None
+                if services.worker_processes is not None:
+                    await anyio.to_thread.run_sync(services.worker_processes.close)
+                    services.worker_processes = None
                 if owns_store and services.store is not None:
                     services.store.close()
                     services.store = None

@@ -17,8 +17,8 @@ import anyio.to_thread
 from anyio import CapacityLimiter
 
 from app.api.auth import KeyRing, RateLimiter
-from app.api.grounding_workers import GroundingWorkers
 from app.api.observability import Metrics
+from app.api.workers import WorkerProcesses
 from app.errors import InvalidInput
 from app.grounding.geometric import FixedGrounder, GeometricGrounder
 from app.grounding.hypotheses import Hypothesis
@@ -200,7 +200,7 @@ class Services:
     metrics: Metrics
     sensors: Sensors | None = None
     store: SessionStore | None = None
-    grounding_workers: GroundingWorkers | None = None
+    worker_processes: WorkerProcesses | None = None
     summaries: SummaryCache = field(init=False)
     limiter: CapacityLimiter = field(init=False)
     keyring: KeyRing = field(init=False)
@@ -221,6 +221,15 @@ class Services:
         """Run CPU-bound work in the worker pool so the event loop keeps serving other requests."""
         return await anyio.to_thread.run_sync(partial(func, *args, **kwargs), limiter=self.limiter)
 
+    def summarise_later(self, session_id: str, summarise_here: Callable[[int], Any]) -> None:
+        """After an update: summarise the session's new version in the background if someone reads it (in a
+        worker process when they can reach its store, else on the summary thread with `summarise_here`)."""
+        workers = self.worker_processes
+        if workers is not None and workers.summarises:
+            self.summaries.refresh(session_id, partial(workers.summarise, session_id))
+        else:
+            self.summaries.refresh(session_id, summarise_here)
+
     async def ground(
         self,
         sensors: Sensors,
@@ -234,7 +243,7 @@ class Services:
         loaded, else on a worker thread. Returns the grounding and the sensor that names its model."""
         sensor = sensors.get(grounder, proposer)  # an unknown name is the caller's error, wherever it runs
         grounder, proposer = grounder or sensors.default, proposer or sensors.default_proposer
-        workers = self.grounding_workers
+        workers = self.worker_processes
         if workers is None or not workers.serves(grounder, proposer):
             return await self.run(sensor.ground, scene_graph, utterance, hypotheses), sensor
         result = await workers.ground(grounder, proposer, scene_graph, utterance, hypotheses)
