@@ -20,7 +20,14 @@ from app.errors import NotFound
 from app.evaluation.metrics import anees, nees
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.relations import Relation
-from app.lsm.features import PackedSamples, SceneArrays, label_text, make_sample, pair_features
+from app.lsm.features import (
+    PackedSamples,
+    SceneArrays,
+    label_text,
+    make_sample,
+    pair_features,
+    percentile,
+)
 from app.lsm.grounder import DEFAULT_MODEL_DIR, LSMGrounder
 from app.lsm.model import (
     ROLE_ANCHOR,
@@ -364,3 +371,10 @@ def test_scene_arrays_match_the_scene_graph():
     np.testing.assert_allclose(arrays.sizes, [2.0 * o.half_extent for o in scene_graph.objects])
     bottoms = [o.min_corner[2] for o in scene_graph.objects]
     assert arrays.floor_z == pytest.approx(np.percentile(bottoms, 10))
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 60, 151])
+def test_percentile_equals_numpy(n):
+    values = np.random.default_rng(n).normal(size=n)
+    for q in (0.0, 10.0, 50.0, 97.5, 100.0):
+        assert percentile(values, q) == pytest.approx(float(np.percentile(values, q)), rel=1e-12, abs=1e-12)

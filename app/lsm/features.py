@@ -107,8 +107,18 @@ class SceneArrays:
             centers=centers,
             sizes=sizes,
             bounds=bounds,
-            floor_z=float(np.percentile(bottoms, 10)) if len(objects) else 0.0,
+            floor_z=percentile(bottoms, 10.0) if len(objects) else 0.0,
         )
+
+
+def percentile(values: np.ndarray, q: float) -> float:
+    """`np.percentile(values, q)` (linear interpolation) for a 1-d array, without numpy's general machinery
+    (a tenth of a millisecond per scene there)."""
+    ordered = np.sort(values)
+    position = q / 100.0 * (len(ordered) - 1)
+    low = int(position)
+    high = min(low + 1, len(ordered) - 1)
+    return float(ordered[low] + (position - low) * (ordered[high] - ordered[low]))
 
 
 def region_frame(
