@@ -1,5 +1,8 @@
 """LSM inference on CPU: one forward pass for 5 hypotheses of a real 60-object room (ScanNet scene0590_00),
-with the utterance new to the text encoder (text encoding included) and with it cached."""
+with the utterance new to the text encoder (text encoding included) and with it cached.
+
+`--precision` picks the MiniLM pass (`TextEncoder`): "auto" (the service's default) is bfloat16 on CPUs
+with AMX, float32 elsewhere."""
 
 from __future__ import annotations
 
@@ -15,7 +18,7 @@ from app.allocator import keep_freed_buffers
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.relations import Relation
 from app.lsm.grounder import DEFAULT_MODEL_DIR, LSMGrounder
-from app.lsm.text_encoder import default_text_encoder
+from app.lsm.text_encoder import PRECISIONS, TextEncoder, amx_available
 from app.scene_graph.model import SceneGraph
 
 SCENE = (
@@ -26,9 +29,11 @@ SCENE = (
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (VLMAP_TORCH_THREADS)")
+    parser.add_argument("--precision", choices=PRECISIONS, default="auto", help="text encoder precision")
     args = parser.parse_args()
     keep_freed_buffers()  # as every `vlmap` command does
-    grounder = LSMGrounder.load(DEFAULT_MODEL_DIR, threads=args.threads, encoder=default_text_encoder())
+    encoder = TextEncoder(precision=args.precision)
+    grounder = LSMGrounder.load(DEFAULT_MODEL_DIR, threads=args.threads, encoder=encoder)
     scene = SceneGraph.model_validate_json(SCENE.read_text())
     first = {o.label: o.id for o in scene.objects}
     tables = [o.id for o in scene.objects if o.label == "table"]
@@ -52,11 +57,24 @@ def main() -> None:
             timings[label].append((time.perf_counter() - start) * 1000.0)
     print(
         f"LSM {grounder.version}, 5 hypotheses, {len(scene.objects)}-object room, torch threads "
-        f"{torch.get_num_threads()}, {platform.machine()}"
+        f"{torch.get_num_threads()}, text encoder {encoder.precision}, {_cpu_name()} "
+        f"({platform.machine()}, AMX {'yes' if amx_available() else 'no'})"
     )
     for label, samples in timings.items():
         p50, p99 = np.percentile(samples, [50, 99])
         print(f"{label}: p50 {p50:.2f} ms, p99 {p99:.2f} ms")
+
+
+def _cpu_name() -> str:
+    """The CPU's model name from /proc/cpuinfo (Linux), else what `platform` knows."""
+    try:
+        with Path("/proc/cpuinfo").open(encoding="utf-8") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from app.lsm.text_encoder import (
     MiniLMForward,
     TextEncoder,
     _load_transformer,
+    amx_available,
     default_model_dir,
     file_sha256,
 )
@@ -117,3 +118,59 @@ def test_concurrent_encodes_through_a_small_cache_agree_with_sequential_ones(enc
     for batch, vectors in zip(batches, results, strict=True):
         np.testing.assert_allclose(vectors, np.stack([expected[w] for w in batch]), atol=1e-5)
     assert len(small._cache) <= 3
+
+
+def test_backend_tokenizer_equals_the_library_tokenizer():
+    """The encoder calls the Rust backend directly; ids and masks equal the wrapper's, truncation included."""
+    from app.lsm.text_encoder import _backend_tokenizer
+
+    tokenizer, _ = _load_transformer(default_model_dir())
+    backend = _backend_tokenizer(tokenizer, max_tokens=16)
+    texts = [
+        "",
+        "DiningTable",
+        "I left my backpack on the table",
+        "Ünïcode café, naïve 東京 🙂",
+        "the small black backpack that I left next to the sofa in the living room this morning",
+        "  spaces   around\tand\nnewlines ",
+    ]
+    for batch in [[t] for t in texts] + [texts]:
+        expected = tokenizer(batch, padding=True, truncation=True, max_length=16)
+        encodings = backend.encode_batch(batch)
+        assert [e.ids for e in encodings] == expected["input_ids"]
+        assert [e.attention_mask for e in encodings] == expected["attention_mask"]
+
+
+def test_rejects_an_unknown_precision():
+    with pytest.raises(ValueError, match="precision"):
+        TextEncoder(precision="int8")
+
+
+def test_auto_precision_falls_back_to_float32_without_amx(monkeypatch):
+    import app.lsm.text_encoder as text_encoder
+
+    monkeypatch.setattr(text_encoder, "amx_available", lambda: False)
+    assert TextEncoder(precision="auto").precision == "float32"
+    with pytest.raises(ModelUnavailable, match="AMX"):
+        TextEncoder(precision="bfloat16")
+
+
+@pytest.mark.skipif(not amx_available(), reason="the bfloat16 pass needs a CPU with AMX")
+def test_bfloat16_embeddings_stay_within_cosine_0_99995_of_float32():
+    """What the LSM sees on AMX machines: embeddings as close to the float32 ones as their rounding allows."""
+    exact = TextEncoder(precision="float32")
+    fast = TextEncoder(precision="auto")
+    assert fast.precision == "bfloat16" and exact.precision == "float32"
+    texts = [
+        "lamp",
+        "dining table",
+        "trash can",
+        "I left my backpack on the table",
+        "the mug between the desk and the lamp",
+        "the chair farthest from the door",
+        "the small black backpack that I left next to the sofa in the living room this morning",
+    ]
+    for batch in [[t] for t in texts] + [texts]:  # alone and in a padded batch
+        a, b = exact.encode(batch), fast.encode(batch)
+        assert float(np.min(np.sum(a * b, axis=1))) > 0.99995
+        assert float(np.max(np.abs(a - b))) < 3e-3

@@ -469,7 +469,9 @@ def run(args: argparse.Namespace) -> int:
     from app.lsm.text_encoder import TextEncoder
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    params = fit_proposer(args.cases, TextEncoder(), args.train_every, args.l2, args.max_hypotheses)
+    # Fitted on float32 embeddings, like the LSM; serving may use the bfloat16 pass (cosine 0.99998).
+    encoder = TextEncoder(precision="float32")
+    params = fit_proposer(args.cases, encoder, args.train_every, args.l2, args.max_hypotheses)
     out = args.out / "params.json"
     params.save(out)
     metrics = params.info["metrics"]

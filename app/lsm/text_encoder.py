@@ -14,6 +14,13 @@ BERT encoder written as a dozen tensor operations on fused weights. On one CPU t
 utterance in about 9 ms where the library's module stack takes about 16 ms (its per-module overhead and
 GEMM shape dominate at ten tokens), and the language sensor's latency budget is 15 ms for the whole call.
 Its outputs equal the library's to float32 rounding (tested).
+
+At ten tokens the pass is bound by reading the 42 MB of projection weights. On CPUs with AMX (Intel
+Sapphire Rapids and later) `precision="auto"` runs the projections as bfloat16 GEMMs through oneDNN
+instead (weights prepacked once, half the bytes, AMX tiles): about 6 ms instead of 10 on one thread.
+Layer norms, attention and the residual stream stay float32, and the embeddings stay within cosine
+0.99998 of the float32 ones (checked at load on a probe sentence, tested on more). Elsewhere, or with
+`precision="float32"`, the float32 pass runs.
 """
 
 from __future__ import annotations
@@ -35,6 +42,12 @@ from app.errors import ModelUnavailable
 MINILM_SHA256 = "53aa51172d142c89d9012cce15ae4d6cc0ca6895895114379cacb4fab128d9db"
 EMBEDDING_DIM = 384
 WEIGHTS_FILE = "model.safetensors"
+PRECISIONS = ("auto", "float32", "bfloat16")
+#: Environment variable that sets the shared encoder's `precision` ("auto" when unset).
+PRECISION_ENV = "VLMAP_TEXT_ENCODER_PRECISION"
+#: The bfloat16 pass is refused (float32 used instead) if a probe embedding moves further than this.
+MIN_BFLOAT16_COSINE = 0.9999
+_PROBE_TEXT = "the small black backpack I left on the table next to the sofa"
 
 
 def default_model_dir() -> Path:
@@ -62,7 +75,13 @@ class TextEncoder:
         expected_sha256: str = MINILM_SHA256,
         max_tokens: int = 64,
         cache_size: int = 4096,
+        precision: str = "auto",
     ) -> None:
+        """`precision`: "float32", "bfloat16" (oneDNN bfloat16 GEMMs; needs a CPU with AMX) or "auto"
+        (bfloat16 where AMX is present and the probe embedding agrees with float32, else float32)."""
+        if precision not in PRECISIONS:
+            msg = f"text encoder precision {precision!r} is not one of {PRECISIONS}"
+            raise ValueError(msg)
         self.model_dir = Path(model_dir) if model_dir is not None else default_model_dir()
         weights = self.model_dir / WEIGHTS_FILE
         if not weights.is_file():
@@ -82,7 +101,30 @@ class TextEncoder:
         self._lock = threading.Lock()
         tokenizer, model = _load_transformer(self.model_dir)
         self._tokenizer = tokenizer
-        self._forward = MiniLMForward.from_transformers(model)
+        self._backend_tokenizer = _backend_tokenizer(tokenizer, max_tokens)
+        exact = MiniLMForward.from_transformers(model)
+        self._forward: MiniLMForward | MiniLMBfloat16Forward = exact
+        self.precision = "float32"  # of the pass in use
+        if precision == "bfloat16" or (precision == "auto" and amx_available()):
+            self._use_bfloat16(exact, required=precision == "bfloat16")
+
+    def _use_bfloat16(self, exact: MiniLMForward, required: bool) -> None:
+        """Switch to the bfloat16 pass if it runs here and agrees with float32 on a probe sentence."""
+        if not amx_available():
+            if required:
+                msg = "bfloat16 text encoding needs a CPU with AMX and torch's oneDNN bfloat16 linear"
+                raise ModelUnavailable(msg)
+            return
+        reference = self._embed([_PROBE_TEXT])[0]
+        self._forward = MiniLMBfloat16Forward(exact)
+        cosine = float(reference @ self._embed([_PROBE_TEXT])[0])
+        if cosine < MIN_BFLOAT16_COSINE:
+            self._forward = exact
+            if required:
+                msg = f"bfloat16 text encoding moved the probe embedding to cosine {cosine:.6f}"
+                raise ModelUnavailable(msg)
+            return
+        self.precision = "bfloat16"
 
     def encode(self, texts: Sequence[str], batch_size: int = 256) -> np.ndarray:
         """Unit-norm embeddings, shape (len(texts), 384), float32; cached texts skip the transformer.
@@ -108,12 +150,12 @@ class TextEncoder:
     def _embed(self, texts: list[str]) -> np.ndarray:
         import torch
 
-        tokens = self._tokenizer(
-            texts, padding=True, truncation=True, max_length=self.max_tokens, return_tensors="pt"
-        )
+        encodings = self._backend_tokenizer.encode_batch(texts)  # truncated, padded to the longest
+        input_ids = torch.tensor([e.ids for e in encodings])  # (B, T)
+        attention_mask = torch.tensor([e.attention_mask for e in encodings])  # (B, T)
         with torch.inference_mode():
-            hidden = self._forward(tokens["input_ids"], tokens["attention_mask"])  # (B, T, 384)
-            mask = tokens["attention_mask"].unsqueeze(-1).to(hidden.dtype)  # (B, T, 1)
+            hidden = self._forward(input_ids, attention_mask)  # (B, T, 384)
+            mask = attention_mask.unsqueeze(-1).to(hidden.dtype)  # (B, T, 1)
             pooled = (hidden * mask).sum(dim=1) / mask.sum(dim=1).clamp(min=1e-9)  # (B, 384)
             pooled = torch.nn.functional.normalize(pooled, p=2.0, dim=-1)
         return pooled.numpy().astype(np.float32)
@@ -171,6 +213,25 @@ class MiniLMForward:
         state = {name: tensor.detach().clone() for name, tensor in model.state_dict().items()}
         return cls(state, cfg.num_hidden_layers, cfg.num_attention_heads, cfg.layer_norm_eps)
 
+    def embed_tokens(self, input_ids: Any) -> Any:
+        """LN(word + position + token type 0), token-major (B*T, D)."""
+        import torch.nn.functional as F
+
+        bsz, seq = input_ids.shape
+        dim = self.word.shape[1]
+        x = self.word[input_ids] + self.position[:seq] + self.token_type  # (B, T, D)
+        return F.layer_norm(x, (dim,), self.ln_w, self.ln_b, self.eps).view(bsz * seq, dim)
+
+    @staticmethod
+    def key_bias(attention_mask: Any) -> Any:
+        """Attention bias (B, 1, 1, T): -inf on padded keys (every row keeps its [CLS] key); None unpadded."""
+        import torch
+
+        if bool(attention_mask.all()):
+            return None
+        bsz, seq = attention_mask.shape
+        return torch.zeros(bsz, 1, 1, seq).masked_fill(attention_mask[:, None, None, :] == 0, -torch.inf)
+
     def __call__(self, input_ids: Any, attention_mask: Any) -> Any:
         import torch
         import torch.nn.functional as F
@@ -178,10 +239,8 @@ class MiniLMForward:
         bsz, seq = input_ids.shape
         dim = self.word.shape[1]
         head = dim // self.n_heads
-        x = self.word[input_ids] + self.position[:seq] + self.token_type  # (B, T, D)
-        x = F.layer_norm(x, (dim,), self.ln_w, self.ln_b, self.eps).view(bsz * seq, dim)  # (B*T, D)
-        # Padded keys get -inf; every row keeps at least its [CLS] key.
-        key_bias = torch.zeros(bsz, 1, 1, seq).masked_fill(attention_mask[:, None, None, :] == 0, -torch.inf)
+        x = self.embed_tokens(input_ids)  # (B*T, D)
+        key_bias = self.key_bias(attention_mask)
         for layer in self.layers:
             qkv = torch.addmm(layer["b_qkv"], layer["w_qkv"], x.t().contiguous())  # (3D, B*T)
             # (3, H, d, B, T) -> (3, B, H, T, d): q, k, v
@@ -195,6 +254,88 @@ class MiniLMForward:
             y = torch.addmm(layer["b_2"], layer["w_2"], h)  # (D, B*T)
             x = F.layer_norm(x + y.t(), (dim,), layer["ln2_w"], layer["ln2_b"], self.eps)
         return x.view(bsz, seq, dim)
+
+
+def amx_available() -> bool:
+    """Whether this CPU has AMX tiles and torch's oneDNN runs bfloat16 linear layers (CI machines may not)."""
+    import torch
+
+    try:
+        return bool(
+            torch.backends.mkldnn.is_available()
+            and torch.cpu._is_amx_tile_supported()
+            and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+            and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+        )
+    except (AttributeError, RuntimeError):  # a torch build without these entry points
+        return False
+
+
+class MiniLMBfloat16Forward:
+    """`MiniLMForward` with its four projections per layer as oneDNN bfloat16 GEMMs (AMX on this hardware).
+
+    Weights are converted to bfloat16 and prepacked for oneDNN once; activations are rounded to bfloat16
+    only as GEMM inputs (and the first FFN layer's GELU output, fused into its GEMM). Embeddings, layer
+    norms, attention and the residual stream are float32, as in the exact pass. Token-major layout.
+    """
+
+    #: Rows (tokens in a batch) the weights are laid out for; any row count works.
+    PACKED_FOR_ROWS = 16
+
+    def __init__(self, exact: MiniLMForward) -> None:
+        import torch
+
+        reorder = torch.ops.mkldnn._reorder_linear_weight
+        self.exact = exact
+        self.layers = [
+            {
+                name: (
+                    reorder(layer[f"w_{name}"].to(torch.bfloat16), self.PACKED_FOR_ROWS),
+                    layer[f"b_{name}"][:, 0].to(torch.bfloat16),
+                )
+                for name in ("qkv", "o", "1", "2")
+            }
+            for layer in exact.layers
+        ]
+
+    def __call__(self, input_ids: Any, attention_mask: Any) -> Any:
+        import torch
+        import torch.nn.functional as F
+
+        linear = torch.ops.mkldnn._linear_pointwise
+        bf16 = torch.bfloat16
+        exact = self.exact
+        bsz, seq = input_ids.shape
+        dim = exact.word.shape[1]
+        head = dim // exact.n_heads
+        x = exact.embed_tokens(input_ids)  # (B*T, D) float32
+        key_bias = exact.key_bias(attention_mask)
+        for layer, packed in zip(exact.layers, self.layers, strict=True):
+            qkv = linear(x.to(bf16), *packed["qkv"], "none", [], "").float()  # (B*T, 3D)
+            # (B, T, 3, H, d) -> (3, B, H, T, d): q, k, v
+            q, k, v = qkv.view(bsz, seq, 3, exact.n_heads, head).permute(2, 0, 3, 1, 4)
+            y = F.scaled_dot_product_attention(q, k, v, attn_mask=key_bias)  # (B, H, T, d)
+            y = linear(y.transpose(1, 2).reshape(bsz * seq, dim).to(bf16), *packed["o"], "none", [], "")
+            x = F.layer_norm(x + y, (dim,), layer["ln1_w"], layer["ln1_b"], exact.eps)  # float32
+            h = linear(x.to(bf16), *packed["1"], "gelu", [], "none")  # (B*T, 4D), erf GELU fused
+            y = linear(h, *packed["2"], "none", [], "")
+            x = F.layer_norm(x + y, (dim,), layer["ln2_w"], layer["ln2_b"], exact.eps)
+        return x.view(bsz, seq, dim)
+
+
+def _backend_tokenizer(tokenizer: Any, max_tokens: int) -> Any:
+    """A private copy of the tokenizer's Rust backend that truncates at `max_tokens` and pads to the longest
+    text, i.e. what `tokenizer(texts, padding=True, truncation=True, max_length=max_tokens)` computes.
+
+    Called directly it spares the Python wrapper's half millisecond per call; configured once and never
+    again, it can be shared by request threads (the wrapper reconfigures its backend on every call).
+    """
+    from tokenizers import Tokenizer
+
+    backend = Tokenizer.from_str(tokenizer.backend_tokenizer.to_str())
+    backend.enable_truncation(max_length=max_tokens)
+    backend.enable_padding(pad_id=tokenizer.pad_token_id, pad_token=tokenizer.pad_token)
+    return backend
 
 
 def _load_transformer(model_dir: Path) -> tuple[Any, Any]:
@@ -220,4 +361,4 @@ def _load_transformer(model_dir: Path) -> tuple[Any, Any]:
 @lru_cache(maxsize=1)
 def default_text_encoder() -> TextEncoder:
     """The shipped MiniLM, loaded once per process and shared (the LSM, the built-in proposer)."""
-    return TextEncoder()
+    return TextEncoder(precision=os.environ.get(PRECISION_ENV) or "auto")

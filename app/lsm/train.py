@@ -413,7 +413,8 @@ def _embedding_cache(config: TrainConfig, out_dir: Path | None) -> EmbeddingCach
     path = Path(config.data.embedding_cache) if config.data.embedding_cache else None
     if path is None and out_dir is not None:
         path = out_dir / "embeddings.npz"
-    return EmbeddingCache(path, MINILM_SHA256, lambda: TextEncoder().encode)
+    # float32 always: these embeddings are what the model is trained on (and they are cached to disk).
+    return EmbeddingCache(path, MINILM_SHA256, lambda: TextEncoder(precision="float32").encode)
 
 
 def _targets(split: Split) -> np.ndarray:
