@@ -579,6 +579,26 @@ def test_an_observation_batch_writes_only_the_blocks_it_touches(redis_url: str) 
 
 
 @pytest.mark.redis
+def test_a_session_stored_with_another_block_size_is_read_and_updated_in_its_own(redis_url: str) -> None:
+    from app.stores.redis_store import LEGACY_BLOCK_VOXELS
+
+    session = make_session()
+    session.belief.apply_utterance(wide_mixture(np.random.default_rng(3)))
+    older = redis_store(redis_url, block_voxels=LEGACY_BLOCK_VOXELS)
+    older.create(session)
+    store = redis_store(redis_url, block_voxels=1024, prefix=older.prefix)
+    older._client.hdel(older._key(session.id, "meta"), "block_voxels")  # as stored before the field existed
+    ops = random_ops(5, 12, session.grid.n_voxels)
+    for op in ops:
+        apply_to_store(store, session.id, op)
+        apply_to_session(session, op)
+    assert_same_belief(store.get(session.id), session, exact=False)
+    assert store._client.hkeys(store._key(session.id, "vis")) == [b"0"]  # still one 65,536-voxel block
+    older.close()
+    store.close()
+
+
+@pytest.mark.redis
 def test_a_session_lock_held_elsewhere_makes_updates_wait_then_give_up(redis_url: str) -> None:
     store = redis_store(redis_url, lock_wait_s=0.2)
     session = make_session()

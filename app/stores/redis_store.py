@@ -5,9 +5,10 @@ Keys of session S (the hash tag {S} keeps them in one cluster slot):
     <prefix>:s:{S}:meta   hash: static (msgpack: robot, grid, target, label map, sensor model, limits,
                           creation time; only the target ever changes), sg (scene graph JSON), version,
                           updated_at, look_alikes (int64 flat indices of the mapped objects of the
-                          target's class, `mapped_look_alikes`, rewritten with sg or the target);
-                          `info` and `list` read this hash alone
-    <prefix>:s:{S}:lang   hash: block number -> float32 bytes of `block_voxels` voxels (absent = zeros)
+                          target's class, `mapped_look_alikes`, rewritten with sg or the target),
+                          block_voxels (the layers' block size); `info` and `list` read this hash alone
+    <prefix>:s:{S}:lang   hash: block number -> float32 bytes of the session's `block_voxels` voxels (the meta
+                          hash's field, fixed at creation; absent blocks are zeros)
     <prefix>:s:{S}:vis    hash: the same for the vision layer
     <prefix>:s:{S}:lock   the update lock
     <prefix>:s:{S}:summary  hash: summary options -> msgpack {version, summary}, the last summary computed
@@ -66,8 +67,12 @@ from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
 from app.stores.base import DEFAULT_TTL_S, check_session_id, float64_mixture
 
-#: Voxels per stored block: 256 kB of float32, a few dozen blocks for a room.
-DEFAULT_BLOCK_VOXELS = 1 << 16
+#: Voxels per stored block of a new session: 4 kB of float32. A camera's 10k-voxel batch in a 163k-voxel room
+#: touches 160 kB of 1024-voxel blocks, against 550 kB of the 65,536-voxel blocks first used: each update
+#: reads, rewrites and (on an `appendfsync always` Redis) fsyncs that much.
+DEFAULT_BLOCK_VOXELS = 1 << 10
+#: The block size of sessions stored before the meta hash recorded one.
+LEGACY_BLOCK_VOXELS = 1 << 16
 #: How long an update may hold a session's lock before another replica may take it (seconds).
 DEFAULT_LOCK_TTL_S = 30.0
 #: How long an update waits for a session's lock before giving up with StoreUnavailable (seconds).
@@ -116,8 +121,8 @@ R = TypeVar("R")
 Read = tuple[Any, ...]
 #: Hashes an update writes: key -> {field: value}.
 Writes = dict[str, dict[str, Any]]
-#: change(static meta, new version, look-alikes, read results) -> (writes, result)
-Change = Callable[[dict[str, Any], int, np.ndarray, list[Any]], tuple[Writes, R]]
+#: change(what the meta hash held, read results) -> (writes, result)
+Change = Callable[["_Snapshot", list[Any]], tuple[Writes, R]]
 
 
 def _redis_errors(method: Callable[P, R]) -> Callable[P, R]:
@@ -142,6 +147,25 @@ def parse_scene_graph_json(raw: bytes) -> SceneGraph:
     scene graph, and parsing a 60-object one took 1.7 ms, half of reading the session. Callers share the
     object and never change it (a replacement is a new scene graph)."""
     return SceneGraph.model_validate_json(raw)
+
+
+def _n_blocks(n_voxels: int, b: int) -> int:
+    return -(-n_voxels // b)
+
+
+def _block_voxels(stored: bytes | None) -> int:
+    """A session's block size from its meta hash field."""
+    return LEGACY_BLOCK_VOXELS if stored is None else int(stored)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Snapshot:
+    """What an update read of the meta hash."""
+
+    static: dict[str, Any]
+    new_version: int
+    look_alikes: np.ndarray  # the stored `mapped_look_alikes`
+    block_voxels: int
 
 
 def _static_meta(session: Session) -> dict[str, Any]:
@@ -227,17 +251,15 @@ class RedisSessionStore:
         pipe.zadd(self._index_key(), {session_id: expiry})
         pipe.zadd(self._index_key(robot_id), {session_id: expiry})
 
-    def _n_blocks(self, n_voxels: int) -> int:
-        return -(-n_voxels // self.block_voxels)
+    @staticmethod
+    def _blocks_of(layer: np.ndarray, b: int) -> dict[str, bytes]:
+        return {str(i): layer[i * b : (i + 1) * b].tobytes() for i in range(_n_blocks(len(layer), b))}
 
-    def _blocks_of(self, layer: np.ndarray) -> dict[str, bytes]:
-        b = self.block_voxels
-        return {str(i): layer[i * b : (i + 1) * b].tobytes() for i in range(self._n_blocks(len(layer)))}
-
-    def _assemble(self, blocks: dict[bytes, bytes], n_voxels: int) -> np.ndarray:
+    @staticmethod
+    def _assemble(blocks: dict[bytes, bytes], n_voxels: int, b: int) -> np.ndarray:
         layer = np.zeros(n_voxels, dtype=fusion.LAYER_DTYPE)
         for name, data in blocks.items():
-            start = int(name) * self.block_voxels
+            start = int(name) * b
             layer[start : start + len(data) // 4] = np.frombuffer(data, dtype="<f4")
         return layer
 
@@ -261,9 +283,8 @@ class RedisSessionStore:
     def _update(self, session_id: str, change: Change[R], reads: Sequence[Read] = ()) -> R:
         """One read-compute-commit of a session (see the module docstring).
 
-        `reads` are (command, key, *args) read in the same transaction as the meta hash; `change(static,
-        new_version, look_alikes, results)` gets their results and returns (hashes to write, result).
-        `look_alikes` are the stored `mapped_look_alikes`.
+        `reads` are (command, key, *args) read in the same transaction as the meta hash; `change(snapshot,
+        results)` gets the meta hash's fields and their results and returns (hashes to write, result).
         """
         for _ in range(_OPTIMISTIC_ATTEMPTS):
             committed = self._attempt(session_id, change, reads, token="")
@@ -283,16 +304,17 @@ class RedisSessionStore:
         """Read, compute, commit once; None when another writer came first."""
         meta_key = self._key(session_id, "meta")
         with self._client.pipeline(transaction=True) as pipe:
-            pipe.hmget(meta_key, ["static", "version", "look_alikes"])
+            pipe.hmget(meta_key, ["static", "version", "look_alikes", "block_voxels"])
             for command, key, *arguments in reads:
                 getattr(pipe, command)(key, *arguments)
-            (static_raw, version, look_alikes), *results = pipe.execute()
+            (static_raw, version, look_alikes, block_voxels), *results = pipe.execute()
         if static_raw is None:
             msg = f"no session {session_id!r}"
             raise NotFound(msg)
         static = msgpack.unpackb(static_raw, raw=False)
         look_alike_idx = np.frombuffer(look_alikes or b"", dtype="<i8")
-        writes, result = change(static, int(version) + 1, look_alike_idx, results)
+        snapshot = _Snapshot(static, int(version) + 1, look_alike_idx, _block_voxels(block_voxels))
+        writes, result = change(snapshot, results)
         now = self._clock()
         expiry = self._expiry_ms(now)
         finite = math.isfinite(expiry)
@@ -334,13 +356,15 @@ class RedisSessionStore:
                         "static": msgpack.packb(_static_meta(session), use_bin_type=True),
                         "sg": session.scene_graph.model_dump_json(),
                         "look_alikes": _look_alikes(session.grid, session.scene_graph, session.target_label),
+                        "block_voxels": self.block_voxels,
                         "version": session.version,
                         "updated_at": repr(now),
                     },
                 )
                 for part, layer in (("lang", session.belief.lang), ("vis", session.belief.vis)):
                     if np.any(layer):
-                        pipe.hset(self._key(session.id, part), mapping=self._blocks_of(layer))
+                        blocks = self._blocks_of(layer, self.block_voxels)
+                        pipe.hset(self._key(session.id, part), mapping=blocks)
                 self._touch(pipe, session.id, session.robot_id, now)
                 pipe.execute()
             except WatchError as exc:
@@ -368,7 +392,8 @@ class RedisSessionStore:
     def get(self, session_id: str) -> Session:
         meta, lang, vis = self._read(session_id, ("meta", "lang", "vis"))
         n = int(np.prod(msgpack.unpackb(meta[b"static"], raw=False)["grid"]["shape"]))
-        return self._session_from(meta, self._assemble(lang, n), self._assemble(vis, n))
+        b = _block_voxels(meta.get(b"block_voxels"))
+        return self._session_from(meta, self._assemble(lang, n, b), self._assemble(vis, n, b))
 
     @_redis_errors
     def info(self, session_id: str) -> SessionInfo:
@@ -424,10 +449,10 @@ class RedisSessionStore:
         sg_json = scene_graph.model_dump_json()
         meta_key = self._key(session_id, "meta")
 
-        def change(static: dict[str, Any], version: int, _: np.ndarray, __: list[Any]) -> tuple[Writes, int]:
-            grid = VoxelGrid.from_dict(static["grid"])
-            look_alikes = _look_alikes(grid, scene_graph, static["target_label"])
-            return {meta_key: {"sg": sg_json, "look_alikes": look_alikes}}, version
+        def change(meta: _Snapshot, _: list[Any]) -> tuple[Writes, int]:
+            grid = VoxelGrid.from_dict(meta.static["grid"])
+            look_alikes = _look_alikes(grid, scene_graph, meta.static["target_label"])
+            return {meta_key: {"sg": sg_json, "look_alikes": look_alikes}}, meta.new_version
 
         return self._update(session_id, change)
 
@@ -435,15 +460,13 @@ class RedisSessionStore:
     def set_target_label(self, session_id: str, label: str) -> int:
         meta_key = self._key(session_id, "meta")
 
-        def change(
-            static: dict[str, Any], version: int, _: np.ndarray, read: list[Any]
-        ) -> tuple[Writes, int]:
-            label_map = {int(k): str(v) for k, v in static["label_map"]}
+        def change(meta: _Snapshot, read: list[Any]) -> tuple[Writes, int]:
+            label_map = {int(k): str(v) for k, v in meta.static["label_map"]}
             check_target_label(label, label_map)
-            packed = msgpack.packb({**static, "target_label": label}, use_bin_type=True)
+            packed = msgpack.packb({**meta.static, "target_label": label}, use_bin_type=True)
             scene_graph = parse_scene_graph_json(read[0])
-            look_alikes = _look_alikes(VoxelGrid.from_dict(static["grid"]), scene_graph, label)
-            return {meta_key: {"static": packed, "look_alikes": look_alikes}}, version
+            look_alikes = _look_alikes(VoxelGrid.from_dict(meta.static["grid"]), scene_graph, label)
+            return {meta_key: {"static": packed, "look_alikes": look_alikes}}, meta.new_version
 
         return self._update(session_id, change, reads=[("hget", meta_key, "sg")])
 
@@ -452,14 +475,13 @@ class RedisSessionStore:
         mixture = float64_mixture(mixture)
         lang_key = self._key(session_id, "lang")
 
-        def change(
-            static: dict[str, Any], version: int, _: np.ndarray, read: list[Any]
-        ) -> tuple[Writes, UpdateResult]:
-            grid = VoxelGrid.from_dict(static["grid"])
-            lang = self._assemble(read[0], grid.n_voxels)
-            span = fusion.LayerLimits(**static["limits"]).lang_span
+        def change(meta: _Snapshot, read: list[Any]) -> tuple[Writes, UpdateResult]:
+            grid = VoxelGrid.from_dict(meta.static["grid"])
+            lang = self._assemble(read[0], grid.n_voxels, meta.block_voxels)
+            span = fusion.LayerLimits(**meta.static["limits"]).lang_span
             fusion.apply_language(lang, language_log_likelihood(grid, mixture), span)
-            return {lang_key: self._blocks_of(lang)}, UpdateResult(session_id, version, grid.n_voxels)
+            writes = {lang_key: self._blocks_of(lang, meta.block_voxels)}
+            return writes, UpdateResult(session_id, meta.new_version, grid.n_voxels)
 
         return self._update(session_id, change, reads=[("hgetall", lang_key)])
 
@@ -479,29 +501,27 @@ class RedisSessionStore:
         flat_idx: np.ndarray | None,
     ) -> UpdateResult:
         vis_key = self._key(session_id, "vis")
-        b = self.block_voxels
-        # Voxel indices given: their blocks are read with the meta hash, in one round trip.
-        prefetch = [] if flat_idx is None else [str(i) for i in np.unique(np.asarray(flat_idx) // b)]
+        # Voxel indices given: their blocks (as sized for new sessions) are read with the meta hash.
+        guess = self.block_voxels
+        prefetch = [] if flat_idx is None else [str(i) for i in np.unique(np.asarray(flat_idx) // guess)]
 
-        def change(
-            static: dict[str, Any], version: int, look_alikes: np.ndarray, read: list[Any]
-        ) -> tuple[Writes, UpdateResult]:
-            observer = self._observer(static, look_alikes)
-            limits = fusion.LayerLimits(**static["limits"])
+        def change(meta: _Snapshot, read: list[Any]) -> tuple[Writes, UpdateResult]:
+            observer = self._observer(meta.static, meta.look_alikes)
+            limits = fusion.LayerLimits(**meta.static["limits"])
             batch = make_batch(observer)
-            n = observer.grid.n_voxels
-            touched = np.flatnonzero(np.bincount(batch.flat_idx // b, minlength=self._n_blocks(n)))  # (T,)
+            n, b = observer.grid.n_voxels, meta.block_voxels
+            touched = np.flatnonzero(np.bincount(batch.flat_idx // b, minlength=_n_blocks(n, b)))  # (T,)
             names = [str(i) for i in touched]
-            stored = dict(zip(prefetch, read[0], strict=True)) if prefetch else {}
+            stored = dict(zip(prefetch, read[0], strict=True)) if prefetch and b == guess else {}
             missing = [name for name in names if name not in stored]
-            if missing:  # points mapped to voxels here; a concurrent change makes the commit fail and retry
+            if missing:  # points, or an older block size; a concurrent change makes the commit fail and retry
                 stored.update(zip(missing, self._client.hmget(vis_key, missing), strict=True))
             local = np.zeros(len(touched) * b, dtype=fusion.LAYER_DTYPE)  # touched blocks side by side
             for slot, name in enumerate(names):
                 data = stored[name]
                 if data is not None:
                     local[slot * b : slot * b + len(data) // 4] = np.frombuffer(data, dtype="<f4")
-            slot_of = np.zeros(self._n_blocks(n), dtype=np.int64)
+            slot_of = np.zeros(_n_blocks(n, b), dtype=np.int64)
             slot_of[touched] = np.arange(len(touched))
             local_idx = slot_of[batch.flat_idx // b] * b + batch.flat_idx % b
             fusion.apply_increments(local, local_idx, batch.increments, limits.vis_min, limits.vis_max)
@@ -509,7 +529,7 @@ class RedisSessionStore:
             for slot, i in enumerate(touched):
                 length = min(b, n - int(i) * b)
                 blocks[names[slot]] = local[slot * b : slot * b + length].tobytes()
-            result = UpdateResult(session_id, version, len(batch.flat_idx), batch.n_outside)
+            result = UpdateResult(session_id, meta.new_version, len(batch.flat_idx), batch.n_outside)
             return ({vis_key: blocks} if blocks else {}), result
 
         return self._update(session_id, change, reads=[("hmget", vis_key, prefetch)] if prefetch else [])
@@ -557,9 +577,9 @@ class RedisSessionStore:
         static = msgpack.unpackb(meta[b"static"], raw=False)
         grid = VoxelGrid.from_dict(static["grid"])
         limits = fusion.LayerLimits(**static["limits"])
-        n = grid.n_voxels
+        n, b = grid.n_voxels, _block_voxels(meta.get(b"block_voxels"))
         return BeliefState(
-            grid, limits, self._assemble(lang, n), self._assemble(vis, n), int(meta[b"version"])
+            grid, limits, self._assemble(lang, n, b), self._assemble(vis, n, b), int(meta[b"version"])
         )
 
     @_redis_errors
