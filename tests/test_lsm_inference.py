@@ -25,7 +25,7 @@ TINY = {
     "n_heads": 4,
     "d_ffn": 64,
     "n_spatial_layers": 2,
-    "n_fusion_layers": 1,
+    "n_fusion_layers": 2,
     "pair_hidden": 16,
     "film_hidden": 16,
     "head_hidden1": 64,
@@ -54,20 +54,26 @@ def _assert_same(actual: LSMOutput, expected: LSMOutput) -> None:
     torch.testing.assert_close(actual.covariance, expected.covariance, atol=1e-5, rtol=1e-5)
 
 
-@pytest.fixture(scope="module")
-def perturbed_tiny_model() -> LanguageSensorModel:
+def _perturbed_tiny_model(**overrides: int) -> LanguageSensorModel:
     """Every weight random: the zero-initialised FiLMs, head output and relation prior would hide errors."""
     torch.manual_seed(3)
-    model = LanguageSensorModel(LSMConfig(**TINY))
+    model = LanguageSensorModel(LSMConfig(**{**TINY, **overrides}))
     with torch.no_grad():
         for param in model.parameters():
             param.copy_(0.3 * torch.randn_like(param))
     return model.eval()
 
 
-def test_matches_the_model_on_padded_samples_with_every_relation(perturbed_tiny_model):
+@pytest.fixture(scope="module")
+def perturbed_tiny_model() -> LanguageSensorModel:
+    return _perturbed_tiny_model()
+
+
+@pytest.mark.parametrize("n_fusion_layers", [0, 1, 2])
+def test_matches_the_model_on_padded_samples_with_every_relation(n_fusion_layers):
     """Samples with 3 to 12 objects (so the batch is padded), anchors of one or two objects, all relations."""
-    cfg = perturbed_tiny_model.cfg
+    model = _perturbed_tiny_model(n_fusion_layers=n_fusion_layers)
+    cfg = model.cfg
     cases = list(read_cases(CASES))
     samples = []
     for i, case in enumerate(cases):
@@ -78,7 +84,7 @@ def test_matches_the_model_on_padded_samples_with_every_relation(perturbed_tiny_
             samples.append(make_sample(case.scene_graph, anchors, relation, case.utterance, small))
     packed = PackedSamples(samples, _fake_embed)
     assert not bool(packed.mask.all())
-    _assert_same(LSMInference(perturbed_tiny_model)(packed), _reference(perturbed_tiny_model, packed))
+    _assert_same(LSMInference(model)(packed), _reference(model, packed))
 
 
 def test_matches_the_model_on_an_unpadded_batch(perturbed_tiny_model):

@@ -12,6 +12,8 @@ this module computes the same function from a `PackedSamples` directly:
 - the pair MLP's first layer is linear in per-object terms except for the pair distance, so
   W f_ij + b = r_i + c_j + d_ij w_d with r, c computed per object: the (B, N, N, 12) feature tensor and
   its GEMM are never built;
+- the last fusion block computes keys and values for every token but the rest (query, projection, FFN)
+  only for the target-query token, the one token the head reads;
 - attention masks are only built when some sample is padded.
 
 The model must not change after this object is built (its weights are read once). Eval mode only: no
@@ -105,9 +107,12 @@ class LSMInference:
         if padded:
             key_ok = torch.cat([mask.new_ones(bsz, 2), mask], dim=1)  # (B, 2 + N)
             fusion_bias = torch.zeros(bsz, 1, 1, n_obj + 2).masked_fill(~key_ok[:, None, None, :], -torch.inf)
-        for block in self.fusion:
-            x = _block(block, x, fusion_bias)
-        pooled = F.layer_norm(x[:, 1], (dim,), model.ln_f.weight, model.ln_f.bias, model.ln_f.eps)  # (B, D)
+        query_out = x[:, 1]  # (B, D): the target-query token, all the head reads
+        if self.fusion:
+            for block in self.fusion[:-1]:
+                x = _block(block, x, fusion_bias)
+            query_out = _block_for_token(self.fusion[-1], x, fusion_bias, token=1)
+        pooled = F.layer_norm(query_out, (dim,), model.ln_f.weight, model.ln_f.bias, model.ln_f.eps)
 
         cond = region_condition(shift, scale, floor_z, packed.scene_low, packed.scene_high)  # (B, C)
         film = F.gelu(F.linear(cond, self.film_in.weight, self.film_in.bias))
@@ -162,6 +167,27 @@ class LSMInference:
             key_ok = torch.cat([mask.new_ones(bsz, 1), mask], dim=1)  # (B, 1 + N)
             bias = bias.masked_fill(~key_ok[:, None, None, :], -torch.inf)
         return bias
+
+
+def _block_for_token(
+    block: Block, x: torch.Tensor, attn_bias: torch.Tensor | None, token: int
+) -> torch.Tensor:
+    """`Block.forward(x)[:, token]` (B, D): every token's keys and values, but one query, one projection and
+    one FFN row; the model only reads the target-query token after the last block."""
+    bsz, seq, dim = x.shape
+    heads = block.n_heads
+    h = F.layer_norm(x, (dim,), block.ln1.weight, block.ln1.bias, block.ln1.eps)  # (B, T, D)
+    w, b = block.qkv.weight, block.qkv.bias  # (3D, D), (3D,): rows q, k, v
+    q = F.linear(h[:, token], w[:dim], b[:dim]).view(bsz, heads, 1, dim // heads)  # (B, H, 1, d)
+    kv = F.linear(h, w[dim:], b[dim:])  # (B, T, 2D)
+    k, v = kv.view(bsz, seq, 2, heads, dim // heads).permute(2, 0, 3, 1, 4)  # (B, H, T, d) each
+    if attn_bias is not None and attn_bias.shape[-2] > 1:
+        attn_bias = attn_bias[..., token : token + 1, :]
+    y = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_bias).view(bsz, dim)  # (B, D)
+    out = torch.addmm(x[:, token] + block.proj.bias, y, block.proj.weight.t())  # (B, D)
+    h = F.layer_norm(out, (dim,), block.ln2.weight, block.ln2.bias, block.ln2.eps)
+    h = F.gelu(F.linear(h, block.fc.weight, block.fc.bias))  # (B, F)
+    return torch.addmm(out + block.fc_out.bias, h, block.fc_out.weight.t())
 
 
 def _linears(stack: nn.Sequential) -> list[nn.Linear]:
