@@ -19,7 +19,6 @@ from anyio import CapacityLimiter
 from app.api.auth import KeyRing, RateLimiter
 from app.api.observability import Metrics
 from app.api.workers import WorkerProcesses
-from app.belief.summary import PosteriorSummary
 from app.errors import InvalidInput
 from app.grounding.geometric import FixedGrounder, GeometricGrounder
 from app.grounding.hypotheses import Hypothesis
@@ -222,13 +221,14 @@ class Services:
         """Run CPU-bound work in the worker pool so the event loop keeps serving other requests."""
         return await anyio.to_thread.run_sync(partial(func, *args, **kwargs), limiter=self.limiter)
 
-    def summarise(self, store: SessionStore, session_id: str, top_k: int) -> PosteriorSummary:
-        """The session's current summary: computed by a worker process when one reaches the store (it
-        leaves the summary there), else by the store here."""
+    def summarise_later(self, session_id: str, summarise_here: Callable[[int], Any]) -> None:
+        """After an update: summarise the session's new version in the background if someone reads it (in a
+        worker process when they can reach its store, else on the summary thread with `summarise_here`)."""
         workers = self.worker_processes
         if workers is not None and workers.summarises:
-            workers.summarise(session_id, top_k)
-        return store.summary(session_id, top_k=top_k)  # the worker's, or a newer version's computed here
+            self.summaries.refresh(session_id, partial(workers.summarise, session_id))
+        else:
+            self.summaries.refresh(session_id, summarise_here)
 
     async def ground(
         self,

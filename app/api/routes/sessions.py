@@ -34,7 +34,7 @@ from app.api.schemas import (
     UtteranceIn,
     UtteranceOut,
 )
-from app.api.services import Services
+from app.api.services import Services, SummaryCache
 from app.api.wire import MSGPACK_TYPES, ObservationBatch, check_batch_size, decode_msgpack_batch, pack_array
 from app.belief.grid import VoxelGrid
 from app.belief.session import SensorModel, SessionInfo, check_target_label, new_session
@@ -100,15 +100,14 @@ def session_out(info: SessionInfo) -> SessionOut:
 
 
 def belief_out(
-    store: SessionStore, services: Services, session_id: str, top_k: int = 5, info: SessionInfo | None = None
+    store: SessionStore, cache: SummaryCache, session_id: str, top_k: int = 5, info: SessionInfo | None = None
 ) -> BeliefOut:
     """The posterior summary of the current version, computed once per version."""
     info = info or store.info(session_id)
-    cache = services.summaries
     cached = cache.get((session_id, info.version, top_k))
     if cached is not None:
         return cached
-    summary = services.summarise(store, session_id, top_k)
+    summary = store.summary(session_id, top_k=top_k)
     version = info.version if summary.version is None else summary.version
     body = BeliefOut(
         session_id=session_id,
@@ -276,14 +275,14 @@ async def put_scene_graph(
 
 
 def fuse_utterance(
-    store: SessionStore, services: Services, info: SessionInfo, result: Grounding, sensor: LanguageSensor
+    store: SessionStore, cache: SummaryCache, info: SessionInfo, result: Grounding, sensor: LanguageSensor
 ) -> UtteranceOut:
     """Add a grounded utterance to the belief; its target phrase names the session's target class if unset."""
     store.apply_utterance(info.id, result.mixture)
     target = result.proposal.parse.target
     if not info.target_label and target and names_a_class(target, info.label_map):
         store.set_target_label(info.id, target)
-    belief = belief_out(store, services, info.id)
+    belief = belief_out(store, cache, info.id)
     return UtteranceOut(grounding=to_response(result, sensor, None), belief=belief)
 
 
@@ -308,7 +307,7 @@ async def post_utterance(
     result, sensor = await services.ground(
         sensors, options.grounder, options.proposer, scene_graph, body.utterance, caller_hypotheses(options)
     )
-    return await services.run(fuse_utterance, store, services, info, result, sensor)
+    return await services.run(fuse_utterance, store, services.summaries, info, result, sensor)
 
 
 def decode_json_batch(raw: bytes, max_voxels: int) -> ObservationBatch:
@@ -367,11 +366,12 @@ def add_observations(
         result = store.apply_observations(
             session_id, batch.labels[keep], points=points, flat_idx=flat_idx, tp=batch.tp, fp=batch.fp
         )
+    cache = services.summaries
     if with_summary:
-        belief = belief_out(store, services, session_id)
+        belief = belief_out(store, cache, session_id)
     else:
         belief = None
-        services.summaries.refresh(session_id, lambda top_k: belief_out(store, services, session_id, top_k))
+        services.summarise_later(session_id, lambda top_k: belief_out(store, cache, session_id, top_k))
     return ObservationOut(
         version=result.version,
         stamp=batch.stamp,
@@ -436,7 +436,7 @@ def belief_grid(store: SessionStore, info: SessionInfo, layers: bool) -> tuple[b
 
 def read_belief(
     store: SessionStore,
-    services: Services,
+    cache: SummaryCache,
     principal: Principal,
     session_id: str,
     fmt: str,
@@ -445,14 +445,14 @@ def read_belief(
     if_none_match: str | None,
 ) -> Response:
     info = _readable(store, principal, session_id)
-    services.summaries.watch(session_id, top_k)
+    cache.watch(session_id, top_k)
     tag = etag(info.version)
     if if_none_match is not None and tag in [t.strip() for t in if_none_match.split(",")]:
         return Response(status_code=304, headers={"ETag": tag})
     if fmt == "grid":
         data, version = belief_grid(store, info, layers)  # the layers may be newer than `info`
         return Response(data, media_type="application/msgpack", headers={"ETag": etag(version)})
-    body = belief_out(store, services, session_id, top_k, info)
+    body = belief_out(store, cache, session_id, top_k, info)
     return Response(
         body.model_dump_json(), media_type="application/json", headers={"ETag": etag(body.version)}
     )
@@ -488,5 +488,5 @@ async def get_belief(
 ) -> Response:
     """The fused posterior: summary (MAP, top voxels, moments, entropy, mass per object) or the whole grid."""
     return await services.run(
-        read_belief, store, services, principal, session_id, format, layers, top_k, if_none_match
+        read_belief, store, services.summaries, principal, session_id, format, layers, top_k, if_none_match
     )
