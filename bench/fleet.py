@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import math
 import os
@@ -37,7 +38,8 @@ import httpx
 import numpy as np
 
 from app.api.launcher import RedisServer, start_service, wait_ready
-from app.client import AsyncVLMapClient, VLMapClient
+from app.api.wire import encode_msgpack_batch
+from app.client import VLMapClient
 
 TP, FP = 0.51, 0.5
 #: Robots send label ids, as a segmenter does. The target class is absent from the scene graph (as the service
@@ -59,6 +61,76 @@ class Stats:
         if outcome == "200":
             self.latencies_ms[route].append((time.perf_counter() - started) * 1000.0)
         self.status[route][outcome] += 1
+
+
+class RequestFailed(Exception):
+    """A non-2xx answer (304 counts as success); `status` is the HTTP status."""
+
+    def __init__(self, status: int) -> None:
+        super().__init__(f"HTTP {status}")
+        self.status = status
+
+
+class LeanHTTPClient:
+    """HTTP/1.1 over one keep-alive asyncio connection, no more than the fleet needs.
+
+    The load generator shares the machine's two cores with the service it measures; through httpx and the
+    Python client it spent about 0.4 of a core on this load, CPU the service then lacked. This client
+    writes each request's bytes itself and reads the status, headers and body. What robots send is the
+    same as through `AsyncVLMapClient` (`encode_msgpack_batch`); the client itself is tested elsewhere.
+    """
+
+    def __init__(self, url: str, timeout_s: float) -> None:
+        host, port = url.removeprefix("http://").split(":")
+        self.host, self.port, self.timeout_s = host, int(port), timeout_s
+        self._streams: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
+
+    async def request(
+        self, method: str, path: str, body: bytes = b"", headers: dict[str, str] | None = None
+    ) -> tuple[int, dict[str, str], bytes]:
+        try:
+            return await asyncio.wait_for(self._exchange(method, path, body, headers or {}), self.timeout_s)
+        except (TimeoutError, OSError, asyncio.IncompleteReadError, ValueError) as exc:
+            await self.close()  # a broken or timed-out exchange leaves the connection unusable
+            raise httpx.TransportError(f"{type(exc).__name__}: {exc}") from exc
+
+    async def _exchange(
+        self, method: str, path: str, body: bytes, headers: dict[str, str]
+    ) -> tuple[int, dict[str, str], bytes]:
+        if self._streams is None:
+            self._streams = await asyncio.open_connection(self.host, self.port)
+        reader, writer = self._streams
+        lines = [f"{method} {path} HTTP/1.1", f"Host: {self.host}", f"Content-Length: {len(body)}"]
+        lines += [f"{name}: {value}" for name, value in headers.items()]
+        writer.write(("\r\n".join(lines) + "\r\n\r\n").encode("latin-1") + body)
+        await writer.drain()
+        status_line = await reader.readline()
+        if not status_line:
+            raise ConnectionResetError("the service closed the connection")
+        status = int(status_line.split()[1])
+        answer: dict[str, str] = {}
+        while (line := await reader.readline()) not in (b"\r\n", b""):
+            name, _, value = line.decode("latin-1").partition(":")
+            answer[name.strip().lower()] = value.strip()
+        payload = await reader.readexactly(int(answer.get("content-length", "0")))
+        if answer.get("connection", "").lower() == "close":
+            await self.close()
+        return status, answer, payload
+
+    async def close(self) -> None:
+        if self._streams is not None:
+            writer = self._streams[1]
+            self._streams = None
+            writer.close()
+            with contextlib.suppress(OSError):
+                await writer.wait_closed()
+
+
+async def checked(response: Any) -> tuple[int, dict[str, str], bytes]:
+    status, headers, body = await response
+    if status >= 400:
+        raise RequestFailed(status)
+    return status, headers, body
 
 
 @dataclass
@@ -115,10 +187,10 @@ class Fleet:
         try:
             result = await coro
         except httpx.TransportError as exc:
-            self.stats.record(route, started, type(exc).__name__)
+            self.stats.record(route, started, str(exc).split(":", 1)[0])
             return None
-        except Exception as exc:  # VLMapHTTPError carries the status
-            self.stats.record(route, started, str(getattr(exc, "status", type(exc).__name__)))
+        except RequestFailed as exc:
+            self.stats.record(route, started, str(exc.status))
             return None
         self.stats.record(route, started, "200")
         return result
@@ -131,43 +203,53 @@ class Fleet:
         # Robots are not phase-locked: each starts at a random point of its batch period and of its utterance
         # cycle (all 20 in step would make every request arrive in bursts of 20 and measure the burst).
         step = int(rng.integers(0, utterance_every))
-        async with AsyncVLMapClient(self.urls[log.replica], timeout_s=10.0) as client:
-            await asyncio.sleep(float(rng.uniform(0.0, period)))
-            while not self.stop.is_set():
-                tick = time.perf_counter()
-                if step % utterance_every == 0:
-                    await self._call(
-                        "POST /utterances",
-                        client.send_utterance(log.session_id, "my wallet is on the desk"),
-                    )
-                flat = self.batch_voxels(rng)
-                ijk = np.stack(np.unravel_index(flat, self.shape), axis=1).astype(np.int32)
-                log.sent.append(flat)
-                labels = np.full(len(flat), TARGET_ID, dtype=np.uint32)
-                result = await self._call(
-                    "POST /observations",
-                    client.send_observations(log.session_id, summary=False, voxels=ijk, labels=labels),
+        client = LeanHTTPClient(self.urls[log.replica], timeout_s=10.0)
+        base = f"/v1/sessions/{log.session_id}"
+        utterance = json.dumps({"utterance": "my wallet is on the desk"}).encode()
+        as_json = {"Content-Type": "application/json"}
+        as_msgpack = {"Content-Type": "application/msgpack"}
+        await asyncio.sleep(float(rng.uniform(0.0, period)))
+        while not self.stop.is_set():
+            tick = time.perf_counter()
+            if step % utterance_every == 0:
+                await self._call(
+                    "POST /utterances",
+                    checked(client.request("POST", f"{base}/utterances", utterance, as_json)),
                 )
-                log.acked.append(result is not None)
-                step += 1
-                await asyncio.sleep(max(0.0, period - (time.perf_counter() - tick)))
+            flat = self.batch_voxels(rng)
+            ijk = np.stack(np.unravel_index(flat, self.shape), axis=1).astype(np.int32)
+            log.sent.append(flat)
+            body = encode_msgpack_batch(voxels=ijk, labels=np.full(len(flat), TARGET_ID, dtype=np.uint32))
+            result = await self._call(
+                "POST /observations",
+                checked(client.request("POST", f"{base}/observations?summary=false", body, as_msgpack)),
+            )
+            log.acked.append(result is not None)
+            step += 1
+            await asyncio.sleep(max(0.0, period - (time.perf_counter() - tick)))
+        await client.close()
 
     async def dashboard(self, index: int) -> None:
-        etags: dict[str, str | None] = {}
-        async with AsyncVLMapClient(self.urls[index % len(self.urls)], timeout_s=10.0) as client:
-            # Each dashboard starts its round at a different robot, as independent screens would.
-            start = index * len(self.robots) // max(1, self.args.dashboards)
-            order = self.robots[start:] + self.robots[:start]
-            while not self.stop.is_set():
-                for log in order:
-                    if self.stop.is_set():
-                        break
-                    result = await self._call(
-                        "GET /belief", client.get_belief(log.session_id, etags.get(log.session_id))
-                    )
-                    if result is not None:
-                        etags[log.session_id] = result[1]
-                    await asyncio.sleep(1.0 / (self.args.poll_rate * len(self.robots)))
+        etags: dict[str, str] = {}
+        client = LeanHTTPClient(self.urls[index % len(self.urls)], timeout_s=10.0)
+        # Each dashboard starts its round at a different robot, as independent screens would.
+        start = index * len(self.robots) // max(1, self.args.dashboards)
+        order = self.robots[start:] + self.robots[:start]
+        while not self.stop.is_set():
+            for log in order:
+                if self.stop.is_set():
+                    break
+                tag = etags.get(log.session_id)
+                headers = {"If-None-Match": tag} if tag else {}
+                path = f"/v1/sessions/{log.session_id}/belief"
+                result = await self._call("GET /belief", checked(client.request("GET", path, b"", headers)))
+                if result is not None:
+                    status, answer, body = result
+                    if status == 200:
+                        json.loads(body)  # a dashboard reads the summary
+                    etags[log.session_id] = answer.get("etag", tag or "")
+                await asyncio.sleep(1.0 / (self.args.poll_rate * len(self.robots)))
+        await client.close()
 
     async def run(self, duration_s: float, fault: Any = None) -> None:
         self.stop.clear()
@@ -222,6 +304,22 @@ def cpu_seconds(pid: int | None = None) -> float:
         return times.user + times.system
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def worker_pids(parent: int) -> list[int]:
+    """A replica's worker processes: its children that hold models (Linux; not the small resource tracker)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if int(stat[1]) == parent and b"spawn_main" in cmdline:
+            found.append(int(entry.name))
+    return sorted(found)
 
 
 def cpu_shares(pids: dict[str, int | None], run: Any, seconds: float) -> dict[str, float]:
@@ -354,6 +452,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         )
         pids: dict[str, int | None] = {"load generator": None}
         pids |= {f"replica {i + 1}": proc.pid for i, proc in enumerate(procs)}
+        pids |= {
+            f"replica {i + 1} worker {j + 1}": child
+            for i, proc in enumerate(procs)
+            for j, child in enumerate(worker_pids(proc.pid))
+        }
         if redis_server is not None and redis_server.proc is not None:
             pids["redis"] = redis_server.proc.pid
         served_before = server_seconds(urls)
