@@ -1,25 +1,19 @@
-"""Worker processes (`VLMAP_WORKER_PROCESSES`): groundings equal to those on threads, errors that cross the
-process boundary intact, a pool that recovers from a dead worker, and summaries of Redis-stored sessions
-computed in a worker for every replica."""
+"""Grounding in worker processes (`VLMAP_WORKER_PROCESSES`): the same answers as on threads, errors that
+cross the process boundary intact, and a pool that recovers from a dead worker."""
 
 from __future__ import annotations
 
-import json
 import os
 import signal
-import time
 from collections.abc import Iterator
 from typing import Any
 
-import msgpack
 import pytest
 from fastapi.testclient import TestClient
 
 from app.api.app import create_app
 from app.api.workers import WorkerProcesses
-from app.belief.summary import summarize
 from app.settings import Settings
-from app.stores.redis_store import RedisSessionStore
 
 
 @pytest.fixture(scope="module")
@@ -118,52 +112,3 @@ def test_a_killed_worker_costs_one_503_then_a_new_pool_serves(
     statuses = [_ground(pooled, scene_graph_dict, "the bag is on the desk").status_code for _ in range(2)]
     assert statuses == [503, 200], statuses
     assert workers._current_pool() is not pool
-
-
-@pytest.mark.redis
-def test_a_watched_redis_session_is_summarised_in_a_worker(redis_url: str, scene_graph_dict: dict) -> None:
-    settings = Settings(  # type: ignore[call-arg]
-        _env_file=None,
-        log_json=False,
-        store=redis_url,
-        rate_limit_per_s=0,
-        grounder="geometric",
-        grounders=["geometric"],
-        proposer="lexical",
-        worker_processes=1,
-    )
-    reader = RedisSessionStore(redis_url)
-    with TestClient(create_app(settings)) as client:
-        workers = client.app.state.services.worker_processes  # type: ignore[attr-defined]
-        assert workers is not None and workers.summarises
-        sid = client.post(
-            "/v1/sessions",
-            json={"robot_id": "robot-1", "scene_graph": scene_graph_dict, "target_label": "bag"},
-        ).json()["id"]
-        assert client.get(f"/v1/sessions/{sid}/belief").status_code == 200  # now watched
-        batch = {"voxels": [[1, 2, 3], [4, 5, 6]], "labels": ["bag", "floor"]}
-        done = client.post(f"/v1/sessions/{sid}/observations?summary=false", json=batch)
-        assert done.status_code == 200, done.text
-        version = done.json()["version"]
-        summary_key = reader._key(sid, "summary")
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:  # the worker stores the new version's summary in Redis
-            stored = [msgpack_version(v) for v in reader._client.hvals(summary_key)]
-            if version in stored:
-                break
-            time.sleep(0.05)
-        else:
-            pytest.fail(f"no summary of version {version} appeared in Redis")
-        session = reader.get(sid)
-        expected = summarize(
-            session.grid, session.belief.lang, session.belief.vis, session.scene_graph, top_k=5
-        )
-        polled = client.get(f"/v1/sessions/{sid}/belief").json()
-        assert polled["version"] == version
-        assert polled["summary"]["map_voxel"] == json.loads(json.dumps(expected.to_dict()["map_voxel"]))
-        client.delete(f"/v1/sessions/{sid}")
-    reader.close()
-
-
-def msgpack_version(entry: bytes) -> int:
-    return int(msgpack.unpackb(entry, raw=False)["version"])

@@ -221,15 +221,6 @@ class Services:
         """Run CPU-bound work in the worker pool so the event loop keeps serving other requests."""
         return await anyio.to_thread.run_sync(partial(func, *args, **kwargs), limiter=self.limiter)
 
-    def summarise_later(self, session_id: str, summarise_here: Callable[[int], Any]) -> None:
-        """After an update: summarise the session's new version in the background if someone reads it (in a
-        worker process when they can reach its store, else on the summary thread with `summarise_here`)."""
-        workers = self.worker_processes
-        if workers is not None and workers.summarises:
-            self.summaries.refresh(session_id, partial(workers.summarise, session_id))
-        else:
-            self.summaries.refresh(session_id, summarise_here)
-
     async def ground(
         self,
         sensors: Sensors,

@@ -1,15 +1,11 @@
-"""CPU-bound work in worker processes, off the request process's interpreter lock.
+"""Grounding in worker processes, off the request process's interpreter lock.
 
 One grounding is tens of milliseconds of Python-driven CPU work: the proposer's features, the MiniLM pass,
-the LSM's many small torch operations; a belief summary of a Redis-stored session, reading it included, is
-several more. On the request process's threads such work holds the interpreter lock for most of that time,
-and every request that arrives meanwhile (a robot's 3 ms observation batch, a dashboard's poll) waits
-behind it: under a fleet's load that wait, not the work, set the observation route's p99. Worker processes
-each load the local models once and ground whole requests (the request process only pickles the scene
-graph in and the grounding out), and summarise sessions of a Redis store into Redis, where every replica's
-next poll finds them. Parts that call an LLM endpoint stay on the request process's threads: they wait on
-the network, not the CPU. Sessions of the embedded store live in the request process and are summarised
-there.
+the LSM's many small torch operations. On the request process's threads it holds the interpreter lock for
+most of that time, and every request that arrives meanwhile (a robot's observation batch, a dashboard's
+poll) waits behind it. Worker processes each load the local models once and ground whole requests; the
+request process only pickles the scene graph in and the grounding out. Parts that call an LLM endpoint stay
+on the request process's threads: they wait on the network, not the CPU.
 """
 
 from __future__ import annotations
@@ -31,7 +27,6 @@ from app.grounding.hypotheses import Hypothesis
 from app.grounding.sensor import Grounding
 from app.scene_graph.model import SceneGraph
 from app.settings import Settings
-from app.stores.base import SessionStore
 
 log = logging.getLogger("vlmap.workers")
 
@@ -41,7 +36,6 @@ LOCAL_PROPOSERS = frozenset({"builtin"})
 # -- inside a worker process --------------------------------------------------------------------------------
 
 _sensors = None  # the worker's `Sensors`, loaded once by `_load`
-_store: SessionStore | None = None  # the worker's connection to a Redis store, opened by the first summary
 
 
 def _load(settings: Settings, parent_pid: int) -> None:
@@ -72,16 +66,6 @@ def _ground(
     return _sensors.get(grounder, proposer).ground(scene_graph, utterance, hypotheses)
 
 
-def _summarise(store_url: str, session_id: str, top_k: int) -> None:
-    """Summarise a Redis-stored session's current version; the store keeps the summary for every replica."""
-    global _store
-    if _store is None:
-        from app.stores import open_store
-
-        _store = open_store(store_url)
-    _store.summary(session_id, top_k=top_k)
-
-
 def _ready() -> bool:
     return _sensors is not None
 
@@ -90,8 +74,7 @@ def _ready() -> bool:
 
 
 class WorkerProcesses:
-    """A pool of `processes` worker processes that ground with the service's local grounders and proposers
-    and summarise Redis-stored sessions.
+    """A pool of `processes` worker processes that ground with the service's local grounders and proposers.
 
     A worker that dies (killed, out of memory) breaks the pool: the requests in flight fail with
     `ModelUnavailable` (503) and the next request gets a fresh pool.
@@ -110,21 +93,6 @@ class WorkerProcesses:
     def serves(self, grounder: str, proposer: str) -> bool:
         """Whether the workers have loaded this grounder and proposer."""
         return grounder in self.grounders and proposer in LOCAL_PROPOSERS
-
-    @property
-    def summarises(self) -> bool:
-        """Whether the workers can summarise the service's sessions (those of a Redis store)."""
-        return self.settings.store.startswith(("redis://", "rediss://", "unix://"))
-
-    def summarise(self, session_id: str, top_k: int) -> None:
-        """Summarise a session into the store from a worker; blocks until done (call it off the loop)."""
-        pool = self._current_pool()
-        try:
-            pool.submit(_summarise, self.settings.store, session_id, top_k).result()
-        except BrokenProcessPool as exc:
-            self._discard(pool)
-            msg = "a worker process died; the next request starts a new one"
-            raise ModelUnavailable(msg) from exc
 
     def start(self) -> None:
         """Start every worker and wait until each has loaded its models (blocks: call it off the loop)."""

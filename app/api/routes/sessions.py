@@ -371,7 +371,7 @@ def add_observations(
         belief = belief_out(store, cache, session_id)
     else:
         belief = None
-        services.summarise_later(session_id, lambda top_k: belief_out(store, cache, session_id, top_k))
+        cache.refresh(session_id, lambda top_k: belief_out(store, cache, session_id, top_k))
     return ObservationOut(
         version=result.version,
         stamp=batch.stamp,
