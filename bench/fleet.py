@@ -322,11 +322,22 @@ def worker_pids(parent: int) -> list[int]:
     return sorted(found)
 
 
+def machine_times() -> np.ndarray:
+    """The machine's CPU time so far by state (user, nice, system, idle, iowait, irq, softirq, steal), from
+    /proc/stat (Linux)."""
+    return np.array([int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:9]])
+
+
 def cpu_shares(pids: dict[str, int | None], run: Any, seconds: float) -> dict[str, float]:
-    """Run `run()` and return how many cores each process kept busy on average meanwhile."""
+    """Run `run()` and return how many cores each process kept busy on average meanwhile, and the shares of
+    the machine's CPU time that were idle and stolen by the hypervisor (a virtual machine's neighbours)."""
     before = {name: cpu_seconds(pid) for name, pid in pids.items()}
+    machine = machine_times()
     run()
-    return {name: round((cpu_seconds(pid) - before[name]) / seconds, 2) for name, pid in pids.items()}
+    spent = machine_times() - machine
+    shares = {name: round((cpu_seconds(pid) - before[name]) / seconds, 2) for name, pid in pids.items()}
+    total = max(1, int(spent.sum()))
+    return shares | {"machine idle": round(spent[3] / total, 2), "machine stolen": round(spent[7] / total, 2)}
 
 
 _SERVER_ROUTES = {
@@ -465,8 +476,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         )
         results["load"] = summarise(fleet.stats)
         print_table(f"Load ({args.duration:.0f} s)", results["load"], args.duration)
-        busy = ", ".join(f"{name} {cores}" for name, cores in results["cpu_cores_busy"].items())
+        shares = dict(results["cpu_cores_busy"])
+        idle, stolen = shares.pop("machine idle"), shares.pop("machine stolen")
+        busy = ", ".join(f"{name} {cores}" for name, cores in shares.items())
         print(f"Cores kept busy on average ({os.cpu_count()} on this machine): {busy}")
+        print(f"Share of the machine's CPU time idle: {idle:.0%}, stolen by the hypervisor: {stolen:.0%}")
         served_after = server_seconds(urls)
         results["server_mean_ms"] = {
             route: round(
