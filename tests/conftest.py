@@ -33,19 +33,23 @@ def scene_graph_dict() -> dict[str, Any]:
     return load_resource_json("scenes/scannet_scene0590_00.json")
 
 
-@pytest.fixture
-def settings() -> Settings:
+def model_free_settings(**overrides: Any) -> Settings:
     """In-memory sessions, no rate limit, and the model-free parts (geometric grounder, lexical proposer):
     what most tests want. The shipped models are tested where they are the subject."""
-    return Settings(  # type: ignore[call-arg]
-        _env_file=None,
-        log_json=False,
-        data_dir=None,
-        rate_limit_per_s=0,
-        grounder="geometric",
-        grounders=["geometric", "fixed"],
-        proposer="lexical",
-    )
+    fields: dict[str, Any] = {
+        "log_json": False,
+        "data_dir": None,
+        "rate_limit_per_s": 0,
+        "grounder": "geometric",
+        "grounders": ["geometric", "fixed"],
+        "proposer": "lexical",
+    }
+    return Settings(_env_file=None, **(fields | overrides))  # type: ignore[call-arg]
+
+
+@pytest.fixture
+def settings() -> Settings:
+    return model_free_settings()
 
 
 @pytest.fixture

@@ -13,23 +13,13 @@ from fastapi.testclient import TestClient
 
 from app.api.app import create_app
 from app.api.workers import WorkerProcesses
-from app.settings import Settings
+from tests.conftest import model_free_settings
 
 
 @pytest.fixture(scope="module")
 def pooled() -> Iterator[TestClient]:
     """An app that grounds in one worker process (geometric grounder, lexical proposer: no model files)."""
-    settings = Settings(  # type: ignore[call-arg]
-        _env_file=None,
-        log_json=False,
-        data_dir=None,
-        rate_limit_per_s=0,
-        grounder="geometric",
-        grounders=["geometric", "fixed"],
-        proposer="lexical",
-        worker_processes=1,
-    )
-    with TestClient(create_app(settings)) as client:
+    with TestClient(create_app(model_free_settings(worker_processes=1))) as client:
         yield client
 
 
