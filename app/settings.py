@@ -95,6 +95,11 @@ class Settings(BaseSettings):
     torch_threads: int = Field(
         default=1, ge=1, description="Threads per LSM forward pass (requests run in parallel across workers)."
     )
+    text_encoder_precision: Literal["auto", "float32", "bfloat16"] = Field(
+        default="auto",
+        description="MiniLM projections in bfloat16 where the CPU has AMX and the probe embedding agrees "
+        "with float32 (auto), always float32, or bfloat16 (an error without AMX).",
+    )
     worker_threads: int = Field(default=8, ge=1, description="Threads for CPU-bound work off the event loop.")
     worker_processes: int = Field(
         default=1,

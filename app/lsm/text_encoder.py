@@ -43,8 +43,6 @@ MINILM_SHA256 = "53aa51172d142c89d9012cce15ae4d6cc0ca6895895114379cacb4fab128d9d
 EMBEDDING_DIM = 384
 WEIGHTS_FILE = "model.safetensors"
 PRECISIONS = ("auto", "float32", "bfloat16")
-#: Environment variable that sets the shared encoder's `precision` ("auto" when unset).
-PRECISION_ENV = "VLMAP_TEXT_ENCODER_PRECISION"
 #: The bfloat16 pass is refused (float32 used instead) if a probe embedding moves further than this.
 MIN_BFLOAT16_COSINE = 0.9999
 _PROBE_TEXT = "the small black backpack I left on the table next to the sofa"
@@ -360,5 +358,8 @@ def _load_transformer(model_dir: Path) -> tuple[Any, Any]:
 
 @lru_cache(maxsize=1)
 def default_text_encoder() -> TextEncoder:
-    """The shipped MiniLM, loaded once per process and shared (the LSM, the built-in proposer)."""
-    return TextEncoder(precision=os.environ.get(PRECISION_ENV) or "auto")
+    """The shipped MiniLM, loaded once per process and shared (the LSM, the built-in proposer), at the
+    settings' precision (`VLMAP_TEXT_ENCODER_PRECISION`)."""
+    from app.settings import get_settings
+
+    return TextEncoder(precision=get_settings().text_encoder_precision)
