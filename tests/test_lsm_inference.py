@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -17,30 +16,13 @@ from app.lsm.grounder import DEFAULT_MODEL_DIR
 from app.lsm.inference import LSMInference
 from app.lsm.model import LanguageSensorModel, LSMConfig, LSMOutput, load_checkpoint
 from app.scene_graph.model import SceneGraph
+from tests.test_lsm_model import TINY as TINY_ONE_LAYER
+from tests.test_lsm_model import _fake_embed
 
 CASES = Path(__file__).parent / "resources" / "lsm" / "cases.jsonl"
 SCENE = Path(__file__).parent / "resources" / "scenes" / "scannet_scene0590_00.json"
-TINY = {
-    "d_model": 32,
-    "n_heads": 4,
-    "d_ffn": 64,
-    "n_spatial_layers": 2,
-    "n_fusion_layers": 2,
-    "pair_hidden": 16,
-    "film_hidden": 16,
-    "head_hidden1": 64,
-    "head_hidden2": 32,
-    "max_objects": 12,
-}
-
-
-def _fake_embed(texts: list[str]) -> np.ndarray:
-    """Deterministic unit vectors seeded by the text (stands in for the text encoder)."""
-    out = np.empty((len(texts), 384), dtype=np.float32)
-    for i, text in enumerate(texts):
-        v = np.random.default_rng(zlib.crc32(text.encode())).standard_normal(384)
-        out[i] = v / np.linalg.norm(v)
-    return out
+#: The model tests' tiny configuration with two layers of each kind (the fast path folds per layer).
+TINY = {**TINY_ONE_LAYER, "n_spatial_layers": 2, "n_fusion_layers": 2}
 
 
 def _reference(model: LanguageSensorModel, packed: PackedSamples) -> LSMOutput:
