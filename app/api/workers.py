@@ -11,7 +11,6 @@ on the request process's threads: they wait on the network, not the CPU.
 from __future__ import annotations
 
 import asyncio
-import gc
 import logging
 import multiprocessing
 import os
@@ -43,13 +42,13 @@ def _load(settings: Settings, parent_pid: int) -> None:
     load the local models."""
     global _sensors
     from app.allocator import keep_freed_buffers
+    from app.api.app import freeze_startup_objects
     from app.api.services import build_sensors
 
     threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
     keep_freed_buffers()
     _sensors = build_sensors(settings.model_copy(update={"llm_url": None}), Metrics())
-    gc.collect()  # as the service does (`freeze_startup_objects`): no full collection scans the models
-    gc.freeze()
+    freeze_startup_objects()
 
 
 def _exit_with_parent(parent_pid: int, poll_s: float = 0.5) -> None:

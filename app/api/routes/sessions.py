@@ -274,6 +274,13 @@ async def put_scene_graph(
     return await services.run(replace_scene_graph, store, principal, session_id, scene_graph, settings)
 
 
+def utterance_context(
+    store: SessionStore, principal: Principal, session_id: str
+) -> tuple[SessionInfo, SceneGraph]:
+    """What grounding an utterance in a session needs, once the caller may write it."""
+    return _writable(store, principal, session_id), store.scene_graph(session_id)
+
+
 def fuse_utterance(
     store: SessionStore, cache: SummaryCache, info: SessionInfo, result: Grounding, sensor: LanguageSensor
 ) -> UtteranceOut:
@@ -302,8 +309,7 @@ async def post_utterance(
 ) -> UtteranceOut:
     """Fuse an utterance: ground it in the session's scene graph and add its log-likelihood to every voxel."""
     options = body.options or GroundOptions()
-    info = await services.run(_writable, store, principal, session_id)
-    scene_graph = await services.run(store.scene_graph, session_id)
+    info, scene_graph = await services.run(utterance_context, store, principal, session_id)
     result, sensor = await services.ground(
         sensors, options.grounder, options.proposer, scene_graph, body.utterance, caller_hypotheses(options)
     )
