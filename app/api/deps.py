@@ -1,4 +1,9 @@
-"""Dependencies as `Annotated` aliases, so route signatures read as plain types."""
+"""Dependencies as `Annotated` aliases, so route signatures read as plain types.
+
+Every dependency is a coroutine: FastAPI runs a plain `def` one on a worker thread, a hop out of the event
+loop and back per dependency and request (five on an observation batch), each a wait for the interpreter
+lock on a busy replica. These only look things up, so they run on the loop.
+"""
 
 from __future__ import annotations
 
@@ -23,25 +28,29 @@ _bearer = HTTPBearer(
 )
 
 
-def get_services(request: Request) -> Services:
+def _services(request: Request) -> Services:
     services: Services = request.app.state.services
     return services
 
 
-def get_settings(request: Request) -> Settings:
-    return get_services(request).settings
+async def get_services(request: Request) -> Services:
+    return _services(request)
 
 
-def get_sensors(request: Request) -> Sensors:
-    sensors = get_services(request).sensors
+async def get_settings(request: Request) -> Settings:
+    return _services(request).settings
+
+
+async def get_sensors(request: Request) -> Sensors:
+    sensors = _services(request).sensors
     if sensors is None:
         msg = "the grounding models are still loading"
         raise ModelUnavailable(msg)
     return sensors
 
 
-def get_store(request: Request) -> SessionStore:
-    store = get_services(request).store
+async def get_store(request: Request) -> SessionStore:
+    store = _services(request).store
     if store is None:
         msg = "the session store is not open"
         raise ModelUnavailable(msg)
@@ -55,7 +64,7 @@ def _query_names(dependant: Dependant) -> frozenset[str]:
     return frozenset(names)
 
 
-def reject_unknown_query(request: Request) -> None:
+async def reject_unknown_query(request: Request) -> None:
     """422 for query parameters the operation does not declare, or declared ones given twice."""
     route = request.scope.get("route")
     if not isinstance(route, APIRoute):
@@ -70,15 +79,15 @@ def reject_unknown_query(request: Request) -> None:
             raise InvalidInput(msg, field=name)
 
 
-def get_summaries(request: Request) -> SummaryCache:
-    return get_services(request).summaries
+async def get_summaries(request: Request) -> SummaryCache:
+    return _services(request).summaries
 
 
-def get_principal(
+async def get_principal(
     request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ) -> Principal:
     """The calling key's principal (rate-limited per key), or open access when no key is configured."""
-    services = get_services(request)
+    services = _services(request)
     if services.keyring.is_open:
         return OPEN_ACCESS
     if credentials is None:
