@@ -196,3 +196,16 @@ def test_real_placements_put_the_mass_on_the_receptacle(target_label: str) -> No
     receptacles = {raw[r]["label"] for r in target["parent_receptacles"] if r in raw}
     assert summary.objects[0].label in receptacles, summary.describe(4)
     assert summary.objects[0].mass > 0.5
+
+
+def test_segment_sums_match_a_loop_with_empty_segments_anywhere() -> None:
+    from app.belief.summary import _segment_sums
+
+    rng = np.random.default_rng(4)
+    p = rng.random(50).astype(np.float32)
+    lengths = [0, 3, 0, 0, 5, 1, 0]  # empty first, in the middle and last
+    flat = rng.integers(0, 50, size=sum(lengths))
+    bounds = np.cumsum([0, *lengths])
+    expected = [p[flat[a:b]].astype(np.float64).sum() for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    np.testing.assert_allclose(_segment_sums(p, flat, bounds), expected, rtol=1e-12)
+    assert _segment_sums(p, flat[:0], np.zeros(3, dtype=np.int64)).tolist() == [0.0, 0.0]
