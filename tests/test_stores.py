@@ -611,6 +611,71 @@ def test_a_session_lock_held_elsewhere_makes_updates_wait_then_give_up(redis_url
     store.close()
 
 
+def _layer_reads(commands: list[str]) -> list[str]:
+    """The reads of a layer hash among MONITOR's commands."""
+    reads = {"HGETALL", "HMGET", "HGET"}
+    return [c for c in commands if c.split()[0] in reads and c.split()[1].endswith((":lang", ":vis"))]
+
+
+@pytest.mark.redis
+def test_the_replica_that_wrote_last_updates_and_summarises_from_its_mirror(redis_url: str) -> None:
+    store = redis_store(redis_url)
+    session = make_session()
+    store.create(session)
+    ops = random_ops(11, 8, session.grid.n_voxels)
+    for op in ops:
+        commands = redis_commands(store, lambda op=op: apply_to_store(store, session.id, op))
+        assert not _layer_reads(commands)  # computed from the mirror, committed on its version
+        apply_to_session(session, op)
+    commands = redis_commands(store, lambda: store.summary(session.id, top_k=3))
+    assert not _layer_reads(commands) and any("summary" in c for c in commands)
+    fresh = redis_store(redis_url, prefix=store.prefix)  # no mirror: reads everything from Redis
+    assert_same_belief(fresh.get(session.id), session)
+    expected = summarize(session.grid, session.belief.lang, session.belief.vis, SCENE, top_k=3)
+    assert store.summary(session.id, top_k=3) == dataclasses.replace(expected, version=session.version)
+    fresh.close()
+    store.close()
+
+
+@pytest.mark.redis
+def test_a_mirror_left_behind_by_another_replica_is_never_used(redis_url: str) -> None:
+    first = redis_store(redis_url)
+    second = redis_store(redis_url, prefix=first.prefix)
+    session = make_session()
+    first.create(session)
+    for step, op in enumerate(random_ops(12, 9, session.grid.n_voxels)):
+        replica = (first, second)[step % 3 == 2]  # the first's mirror goes stale every third update
+        apply_to_store(replica, session.id, op)
+        apply_to_session(session, op)
+        expected = summarize(session.grid, session.belief.lang, session.belief.vis, SCENE, top_k=2)
+        for reader in (first, second):
+            summary = reader.summary(session.id, top_k=2)
+            assert summary.version == session.version
+            assert summary.top_voxels == expected.top_voxels
+    assert_same_belief(first.get(session.id), session, exact=False)
+    first.close()
+    second.close()
+
+
+@pytest.mark.redis
+def test_a_session_made_again_under_its_id_is_not_mistaken_for_the_mirrored_one(redis_url: str) -> None:
+    first = redis_store(redis_url)
+    second = redis_store(redis_url, prefix=first.prefix)
+    first.create(make_session("again"))
+    first.apply_detections("again", [0.9], flat_idx=np.array([7]))  # the first mirrors version 1
+    second.delete("again")
+    new = make_session("again")
+    second.create(new)
+    second.apply_detections("again", [0.2], flat_idx=np.array([3]))  # version 1 again, another state
+    first.apply_detections("again", [0.6], flat_idx=np.array([3]))
+    for p_target in (0.2, 0.6):
+        new.belief.apply_increments(new.detection_batch([p_target], flat_idx=np.array([3])))
+    assert_same_belief(first.get("again"), new)
+    assert first.get("again").belief.vis[7] == 0.0  # nothing of the old session
+    first.close()
+    second.close()
+
+
 def test_an_unreachable_redis_raises_store_unavailable() -> None:
     pytest.importorskip("redis")
     store = open_store(f"redis://127.0.0.1:{free_port()}/0")

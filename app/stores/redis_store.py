@@ -25,6 +25,13 @@ writer that keeps losing (a slow utterance among fast observation streams) takes
 NX PX with a random token), which makes every other writer's commit fail until it is done. An observation
 batch reads and writes only the vision blocks its voxels fall in.
 
+The mirror: each store keeps in memory the last state of each session it read in full or committed
+(`_Mirror`), named by its (version, updated_at). A replica that a robot's connection stays with then
+updates without the read (it computes from the mirror and commits on the condition that the stored state
+still has that name; when another replica wrote meanwhile, the commit fails and the update reads), and
+summarises a version it wrote without reading the whole belief back. The mirror is never needed to be
+right: the commit's condition is checked in Redis, and a state is taken from it only under its name.
+
 Expiry: every write sets the same absolute expiry (PEXPIREAT now + ttl) on all of the session's keys and
 its sorted-set scores; Redis drops the keys, listings skip and prune the ids.
 
@@ -38,8 +45,10 @@ import dataclasses
 import functools
 import json
 import math
+import threading
 import time
 import uuid
+from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, ParamSpec, TypeVar
 
@@ -61,7 +70,7 @@ from app.belief.session import (
     language_log_likelihood,
     mapped_look_alikes,
 )
-from app.belief.summary import PosteriorSummary, summarize
+from app.belief.summary import PosteriorSummary, json_fingerprint, summarize
 from app.errors import InvalidInput, NotFound, StoreUnavailable
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
@@ -82,29 +91,34 @@ _MAX_LOCKED_ATTEMPTS = 20
 
 #: Optimistic attempts before an update takes the session's lock.
 _OPTIMISTIC_ATTEMPTS = 3
+#: Bytes of layers the mirror holds (the least recently used sessions go first): 2 x 4 bytes per voxel,
+#: 1.3 MB for a 163k-voxel room.
+DEFAULT_MIRROR_BYTES = 256 << 20
 
 # KEYS: meta, lock, the two index sets, lang, vis, summary, then the hashes written.
-# ARGV: version read, lock token ("" without the lock), updated_at, index score, expiry ms ("" for none),
-# session id, number of hashes written, then per hash: its number of fields, then field, value, ...
+# ARGV: version read, updated_at read (with the version, the name of the state read: a session deleted
+# and created again under its id restarts its versions), lock token ("" without the lock), new updated_at,
+# index score, expiry ms ("" for none), session id, number of hashes written, then per hash: its number of
+# fields, then field, value, ...
 _COMMIT_SCRIPT = """
-local version = redis.call('HGET', KEYS[1], 'version')
-if not version then return -1 end
-if version ~= ARGV[1] then return -2 end
+local state = redis.call('HMGET', KEYS[1], 'version', 'updated_at')
+if not state[1] then return -1 end
+if state[1] ~= ARGV[1] or state[2] ~= ARGV[2] then return -2 end
 local holder = redis.call('GET', KEYS[2])
-if holder and holder ~= ARGV[2] then return -2 end
-local at = 8
-for k = 8, 7 + tonumber(ARGV[7]) do
+if holder and holder ~= ARGV[3] then return -2 end
+local at = 9
+for k = 8, 7 + tonumber(ARGV[8]) do
     local n = tonumber(ARGV[at])
     redis.call('HSET', KEYS[k], unpack(ARGV, at + 1, at + 2 * n))
     at = at + 1 + 2 * n
 end
-local new = tonumber(version) + 1
-redis.call('HSET', KEYS[1], 'version', new, 'updated_at', ARGV[3])
-if ARGV[5] ~= '' then
-    for _, k in ipairs({1, 5, 6, 7}) do redis.call('PEXPIREAT', KEYS[k], ARGV[5]) end
+local new = tonumber(state[1]) + 1
+redis.call('HSET', KEYS[1], 'version', new, 'updated_at', ARGV[4])
+if ARGV[6] ~= '' then
+    for _, k in ipairs({1, 5, 6, 7}) do redis.call('PEXPIREAT', KEYS[k], ARGV[6]) end
 end
-redis.call('ZADD', KEYS[3], ARGV[4], ARGV[6])
-redis.call('ZADD', KEYS[4], ARGV[4], ARGV[6])
+redis.call('ZADD', KEYS[3], ARGV[5], ARGV[7])
+redis.call('ZADD', KEYS[4], ARGV[5], ARGV[7])
 return new
 """
 
@@ -158,14 +172,103 @@ def _block_voxels(stored: bytes | None) -> int:
     return LEGACY_BLOCK_VOXELS if stored is None else int(stored)
 
 
+#: A stored state's name: (version, the meta hash's updated_at bytes).
+Stamp = tuple[int, bytes]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Mirrored:
+    """A session's state as this store last read in full or committed it, named by `stamp`.
+
+    Never changed in place (a summary on another thread may be reading it): an update makes a new one.
+    `static` is decoded from the stored bytes, so it equals what a read of the meta hash gives.
+    """
+
+    stamp: Stamp
+    static: dict[str, Any]
+    look_alikes: np.ndarray
+    block_voxels: int
+    scene_graph_json: bytes
+    lang: np.ndarray  # (N,) float32
+    vis: np.ndarray  # (N,) float32
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.lang.nbytes + self.vis.nbytes)
+
+    def after(self, writes: dict[str, dict[str, Any]], stamp: Stamp) -> _Mirrored:
+        """The state once a commit wrote `writes` (part -> {field: value}, as `_attempt` sends them)."""
+        layers = {"lang": self.lang, "vis": self.vis}
+        for part, fields in writes.items():
+            if part in layers and fields:
+                layer, b = layers[part].copy(), self.block_voxels
+                for name, data in fields.items():
+                    start = int(name) * b
+                    layer[start : start + len(data) // 4] = np.frombuffer(data, dtype="<f4")
+                layers[part] = layer
+        meta = writes.get("meta", {})
+        sg = meta.get("sg", self.scene_graph_json)
+        return _Mirrored(
+            stamp=stamp,
+            static=msgpack.unpackb(meta["static"], raw=False) if "static" in meta else self.static,
+            look_alikes=(
+                np.frombuffer(meta["look_alikes"], dtype="<i8") if "look_alikes" in meta else self.look_alikes
+            ),
+            block_voxels=self.block_voxels,
+            scene_graph_json=sg.encode() if isinstance(sg, str) else sg,
+            lang=layers["lang"],
+            vis=layers["vis"],
+        )
+
+
+class _Mirror:
+    """Sessions' last known states (`_Mirrored`), the least recently used dropped beyond `max_bytes`."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self._entries: OrderedDict[str, _Mirrored] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def get(self, session_id: str, stamp: Stamp | None = None) -> _Mirrored | None:
+        """The session's entry (only if it is the state `stamp` names, when given)."""
+        with self._lock:
+            entry = self._entries.get(session_id)
+            if entry is None or (stamp is not None and entry.stamp != stamp):
+                return None
+            self._entries.move_to_end(session_id)
+            return entry
+
+    def put(self, session_id: str, entry: _Mirrored) -> None:
+        with self._lock:
+            self._pop(session_id)
+            if entry.nbytes > self.max_bytes:
+                return
+            self._entries[session_id] = entry
+            self._bytes += entry.nbytes
+            while self._bytes > self.max_bytes:
+                self._pop(next(iter(self._entries)))
+
+    def drop(self, session_id: str) -> None:
+        with self._lock:
+            self._pop(session_id)
+
+    def _pop(self, session_id: str) -> None:
+        entry = self._entries.pop(session_id, None)
+        if entry is not None:
+            self._bytes -= entry.nbytes
+
+
 @dataclasses.dataclass(frozen=True)
 class _Snapshot:
-    """What an update read of the meta hash."""
+    """What an update read of the meta hash, or took from the mirror (then `mirror` is set and the update's
+    reads are not made: the change takes the layers and the scene graph from it)."""
 
     static: dict[str, Any]
     new_version: int
     look_alikes: np.ndarray  # the stored `mapped_look_alikes`
     block_voxels: int
+    mirror: _Mirrored | None = None
 
 
 def _static_meta(session: Session) -> dict[str, Any]:
@@ -210,6 +313,7 @@ class RedisSessionStore:
         lock_wait_s: float = DEFAULT_LOCK_WAIT_S,
         max_batch_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
         socket_timeout_s: float = 5.0,
+        mirror_bytes: int = DEFAULT_MIRROR_BYTES,
         clock: Callable[[], float] = time.time,
     ) -> None:
         import redis
@@ -224,6 +328,7 @@ class RedisSessionStore:
         self.lock_wait_s = lock_wait_s
         self.max_batch_voxels = max_batch_voxels
         self._clock = clock
+        self._mirror = _Mirror(mirror_bytes)
         # Typed Any: redis-py's annotations merge its sync and async return types.
         self._client: Any = redis.Redis.from_url(
             url, socket_timeout=socket_timeout_s, socket_connect_timeout=socket_timeout_s
@@ -286,10 +391,14 @@ class RedisSessionStore:
         `reads` are (command, key, *args) read in the same transaction as the meta hash; `change(snapshot,
         results)` gets the meta hash's fields and their results and returns (hashes to write, result).
         """
+        mirrored = self._mirror.get(session_id)
         for _ in range(_OPTIMISTIC_ATTEMPTS):
-            committed = self._attempt(session_id, change, reads, token="")
+            committed = self._attempt(session_id, change, reads, token="", mirrored=mirrored)
             if committed is not None:
                 return committed[0]
+            if mirrored is not None:  # another replica wrote since: read from now on
+                self._mirror.drop(session_id)
+                mirrored = None
         with self._session_lock(session_id) as token:
             for _ in range(_MAX_LOCKED_ATTEMPTS):
                 committed = self._attempt(session_id, change, reads, token)
@@ -299,21 +408,31 @@ class RedisSessionStore:
         raise StoreUnavailable(msg)
 
     def _attempt(
-        self, session_id: str, change: Change[R], reads: Sequence[Read], token: str
+        self,
+        session_id: str,
+        change: Change[R],
+        reads: Sequence[Read],
+        token: str,
+        mirrored: _Mirrored | None = None,
     ) -> tuple[R] | None:
-        """Read, compute, commit once; None when another writer came first."""
+        """Read (or take the mirrored state), compute, commit once; None when another writer came first."""
         meta_key = self._key(session_id, "meta")
-        with self._client.pipeline(transaction=True) as pipe:
-            pipe.hmget(meta_key, ["static", "version", "look_alikes", "block_voxels"])
-            for command, key, *arguments in reads:
-                getattr(pipe, command)(key, *arguments)
-            (static_raw, version, look_alikes, block_voxels), *results = pipe.execute()
-        if static_raw is None:
-            msg = f"no session {session_id!r}"
-            raise NotFound(msg)
-        static = msgpack.unpackb(static_raw, raw=False)
-        look_alike_idx = np.frombuffer(look_alikes or b"", dtype="<i8")
-        snapshot = _Snapshot(static, int(version) + 1, look_alike_idx, _block_voxels(block_voxels))
+        if mirrored is not None:
+            (version, updated_at), static = mirrored.stamp, mirrored.static
+            snapshot = _Snapshot(static, version + 1, mirrored.look_alikes, mirrored.block_voxels, mirrored)
+            results: list[Any] = []
+        else:
+            with self._client.pipeline(transaction=True) as pipe:
+                pipe.hmget(meta_key, ["static", "version", "updated_at", "look_alikes", "block_voxels"])
+                for command, key, *arguments in reads:
+                    getattr(pipe, command)(key, *arguments)
+                (static_raw, version_raw, updated_at, look_alikes, block_voxels), *results = pipe.execute()
+            if static_raw is None:
+                msg = f"no session {session_id!r}"
+                raise NotFound(msg)
+            static, version = msgpack.unpackb(static_raw, raw=False), int(version_raw)
+            look_alike_idx = np.frombuffer(look_alikes or b"", dtype="<i8")
+            snapshot = _Snapshot(static, version + 1, look_alike_idx, _block_voxels(block_voxels))
         writes, result = change(snapshot, results)
         now = self._clock()
         expiry = self._expiry_ms(now)
@@ -321,7 +440,7 @@ class RedisSessionStore:
         index_keys = [self._index_key(), self._index_key(static["robot_id"])]
         keys = [meta_key, self._key(session_id, "lock"), *index_keys]
         keys += [self._key(session_id, part) for part in ("lang", "vis", "summary")]
-        args: list[Any] = [int(version), token, repr(now), int(expiry) if finite else "inf"]
+        args: list[Any] = [version, updated_at, token, repr(now), int(expiry) if finite else "inf"]
         args += [int(expiry) if finite else "", session_id, len(writes)]
         for key, fields in writes.items():
             keys.append(key)
@@ -332,7 +451,13 @@ class RedisSessionStore:
         if outcome == -1:
             msg = f"no session {session_id!r}"
             raise NotFound(msg)
-        return None if outcome == -2 else (result,)
+        if outcome == -2:
+            return None
+        base = mirrored or self._mirror.get(session_id, (version, updated_at))
+        if base is not None:  # the mirror follows the commit (with the bytes Redis now holds)
+            parts = {key.rsplit(":", 1)[1]: fields for key, fields in writes.items()}
+            self._mirror.put(session_id, base.after(parts, (version + 1, repr(now).encode())))
+        return (result,)
 
     # -- SessionStore ---------------------------------------------------------------------------------------
 
@@ -343,6 +468,9 @@ class RedisSessionStore:
 
         meta_key = self._key(session.id, "meta")
         now = self._clock()
+        static = msgpack.packb(_static_meta(session), use_bin_type=True)
+        sg = session.scene_graph.model_dump_json().encode()
+        look_alikes = _look_alikes(session.grid, session.scene_graph, session.target_label)
         with self._client.pipeline() as pipe:
             try:
                 pipe.watch(meta_key)
@@ -353,9 +481,9 @@ class RedisSessionStore:
                 pipe.hset(
                     meta_key,
                     mapping={
-                        "static": msgpack.packb(_static_meta(session), use_bin_type=True),
-                        "sg": session.scene_graph.model_dump_json(),
-                        "look_alikes": _look_alikes(session.grid, session.scene_graph, session.target_label),
+                        "static": static,
+                        "sg": sg,
+                        "look_alikes": look_alikes,
                         "block_voxels": self.block_voxels,
                         "version": session.version,
                         "updated_at": repr(now),
@@ -370,6 +498,19 @@ class RedisSessionStore:
             except WatchError as exc:
                 msg = f"a session with id {session.id!r} exists"
                 raise InvalidInput(msg, "id") from exc
+        stamp = (session.version, repr(now).encode())
+        self._mirror.put(
+            session.id,
+            _Mirrored(
+                stamp,
+                msgpack.unpackb(static, raw=False),
+                np.frombuffer(look_alikes, dtype="<i8"),
+                self.block_voxels,
+                sg,
+                session.belief.lang.astype(fusion.LAYER_DTYPE, copy=True),  # the caller keeps its session
+                session.belief.vis.astype(fusion.LAYER_DTYPE, copy=True),
+            ),
+        )
         return dataclasses.replace(session.info(), updated_at=now)
 
     def _read(self, session_id: str, parts: tuple[str, ...]) -> tuple[dict[bytes, bytes], ...]:
@@ -383,17 +524,33 @@ class RedisSessionStore:
             raise NotFound(msg)
         return tuple(results)
 
-    def _session_from(self, meta: dict[bytes, bytes], lang: np.ndarray, vis: np.ndarray) -> Session:
+    def _read_state(self, session_id: str) -> _Mirrored:
+        """The whole session in one transaction; it becomes the mirrored state."""
+        meta, lang, vis = self._read(session_id, ("meta", "lang", "vis"))
         static = msgpack.unpackb(meta[b"static"], raw=False)
-        full = {**static, "version": int(meta[b"version"]), "updated_at": float(meta[b"updated_at"])}
-        return Session.from_meta(full, lang, vis, scene_graph=parse_scene_graph_json(meta[b"sg"]))
+        n, b = int(np.prod(static["grid"]["shape"])), _block_voxels(meta.get(b"block_voxels"))
+        state = _Mirrored(
+            (int(meta[b"version"]), meta[b"updated_at"]),
+            static,
+            np.frombuffer(meta.get(b"look_alikes", b""), dtype="<i8"),
+            b,
+            meta[b"sg"],
+            self._assemble(lang, n, b),
+            self._assemble(vis, n, b),
+        )
+        self._mirror.put(session_id, state)
+        return state
+
+    @staticmethod
+    def _session_from(state: _Mirrored) -> Session:
+        version, updated_at = state.stamp
+        full = {**state.static, "version": version, "updated_at": float(updated_at)}
+        scene_graph = parse_scene_graph_json(state.scene_graph_json)
+        return Session.from_meta(full, state.lang.copy(), state.vis.copy(), scene_graph=scene_graph)
 
     @_redis_errors
     def get(self, session_id: str) -> Session:
-        meta, lang, vis = self._read(session_id, ("meta", "lang", "vis"))
-        n = int(np.prod(msgpack.unpackb(meta[b"static"], raw=False)["grid"]["shape"]))
-        b = _block_voxels(meta.get(b"block_voxels"))
-        return self._session_from(meta, self._assemble(lang, n, b), self._assemble(vis, n, b))
+        return self._session_from(self._read_state(session_id))
 
     @_redis_errors
     def info(self, session_id: str) -> SessionInfo:
@@ -443,6 +600,7 @@ class RedisSessionStore:
                 pipe.zrem(self._index_key(), session_id)
                 pipe.zrem(self._index_key(robot_id), session_id)
                 pipe.execute()
+            self._mirror.drop(session_id)
 
     @_redis_errors
     def replace_scene_graph(self, session_id: str, scene_graph: SceneGraph) -> int:
@@ -464,7 +622,8 @@ class RedisSessionStore:
             label_map = {int(k): str(v) for k, v in meta.static["label_map"]}
             check_target_label(label, label_map)
             packed = msgpack.packb({**meta.static, "target_label": label}, use_bin_type=True)
-            scene_graph = parse_scene_graph_json(read[0])
+            raw = read[0] if meta.mirror is None else meta.mirror.scene_graph_json
+            scene_graph = parse_scene_graph_json(raw)
             look_alikes = _look_alikes(VoxelGrid.from_dict(meta.static["grid"]), scene_graph, label)
             return {meta_key: {"static": packed, "look_alikes": look_alikes}}, meta.new_version
 
@@ -477,7 +636,10 @@ class RedisSessionStore:
 
         def change(meta: _Snapshot, read: list[Any]) -> tuple[Writes, UpdateResult]:
             grid = VoxelGrid.from_dict(meta.static["grid"])
-            lang = self._assemble(read[0], grid.n_voxels, meta.block_voxels)
+            if meta.mirror is not None:
+                lang = meta.mirror.lang.copy()
+            else:
+                lang = self._assemble(read[0], grid.n_voxels, meta.block_voxels)
             span = fusion.LayerLimits(**meta.static["limits"]).lang_span
             fusion.apply_language(lang, language_log_likelihood(grid, mixture), span)
             writes = {lang_key: self._blocks_of(lang, meta.block_voxels)}
@@ -512,15 +674,20 @@ class RedisSessionStore:
             n, b = observer.grid.n_voxels, meta.block_voxels
             touched = np.flatnonzero(np.bincount(batch.flat_idx // b, minlength=_n_blocks(n, b)))  # (T,)
             names = [str(i) for i in touched]
-            stored = dict(zip(prefetch, read[0], strict=True)) if prefetch and b == guess else {}
-            missing = [name for name in names if name not in stored]
-            if missing:  # points, or an older block size; a concurrent change makes the commit fail and retry
-                stored.update(zip(missing, self._client.hmget(vis_key, missing), strict=True))
             local = np.zeros(len(touched) * b, dtype=fusion.LAYER_DTYPE)  # touched blocks side by side
-            for slot, name in enumerate(names):
-                data = stored[name]
-                if data is not None:
-                    local[slot * b : slot * b + len(data) // 4] = np.frombuffer(data, dtype="<f4")
+            if meta.mirror is not None:
+                for slot, i in enumerate(touched):
+                    block = meta.mirror.vis[int(i) * b : (int(i) + 1) * b]
+                    local[slot * b : slot * b + len(block)] = block
+            else:
+                stored = dict(zip(prefetch, read[0], strict=True)) if prefetch and b == guess else {}
+                missing = [name for name in names if name not in stored]
+                if missing:  # points, or an older block size; a concurrent change fails the commit (retried)
+                    stored.update(zip(missing, self._client.hmget(vis_key, missing), strict=True))
+                for slot, name in enumerate(names):
+                    data = stored[name]
+                    if data is not None:
+                        local[slot * b : slot * b + len(data) // 4] = np.frombuffer(data, dtype="<f4")
             slot_of = np.zeros(_n_blocks(n, b), dtype=np.int64)
             slot_of[touched] = np.arange(len(touched))
             local_idx = slot_of[batch.flat_idx // b] * b + batch.flat_idx % b
@@ -573,14 +740,10 @@ class RedisSessionStore:
 
     @_redis_errors
     def read_layers(self, session_id: str) -> BeliefState:
-        meta, lang, vis = self._read(session_id, ("meta", "lang", "vis"))
-        static = msgpack.unpackb(meta[b"static"], raw=False)
-        grid = VoxelGrid.from_dict(static["grid"])
-        limits = fusion.LayerLimits(**static["limits"])
-        n, b = grid.n_voxels, _block_voxels(meta.get(b"block_voxels"))
-        return BeliefState(
-            grid, limits, self._assemble(lang, n, b), self._assemble(vis, n, b), int(meta[b"version"])
-        )
+        state = self._read_state(session_id)
+        grid = VoxelGrid.from_dict(state.static["grid"])
+        limits = fusion.LayerLimits(**state.static["limits"])
+        return BeliefState(grid, limits, state.lang.copy(), state.vis.copy(), state.stamp[0])
 
     @_redis_errors
     def summary(self, session_id: str, **kwargs: Any) -> PosteriorSummary:
@@ -589,10 +752,10 @@ class RedisSessionStore:
         meta_key, summary_key = self._key(session_id, "meta"), self._key(session_id, "summary")
         options = json.dumps(kwargs, sort_keys=True)
         with self._client.pipeline(transaction=False) as pipe:
-            pipe.hget(meta_key, "version")
+            pipe.hmget(meta_key, ["version", "updated_at"])
             pipe.hget(summary_key, options)
             pipe.pttl(meta_key)
-            version, stored, ttl_ms = pipe.execute()
+            (version, updated_at), stored, ttl_ms = pipe.execute()
         if version is None:
             msg = f"no session {session_id!r}"
             raise NotFound(msg)
@@ -600,18 +763,24 @@ class RedisSessionStore:
             entry = msgpack.unpackb(stored, raw=False)
             if entry["version"] == int(version):
                 return PosteriorSummary.from_dict(entry["summary"], version=entry["version"])
-        session = self.get(session_id)
+        # The version this replica wrote or read last is in the mirror: no need to read the belief back.
+        state = self._mirror.get(session_id, (int(version), updated_at)) or self._read_state(session_id)
         summary = summarize(
-            session.grid, session.belief.lang, session.belief.vis, session.scene_graph, **kwargs
+            VoxelGrid.from_dict(state.static["grid"]),
+            state.lang,
+            state.vis,
+            parse_scene_graph_json(state.scene_graph_json),
+            scene_fingerprint=json_fingerprint(state.scene_graph_json),  # stored as model_dump_json gave it
+            **kwargs,
         )
         # A slower replica may overwrite a newer entry with an older one; readers then recompute (harmless).
-        entry = {"version": session.version, "summary": summary.to_dict()}
+        entry = {"version": state.stamp[0], "summary": summary.to_dict()}
         with self._client.pipeline(transaction=False) as pipe:
             pipe.hset(summary_key, options, msgpack.packb(entry, use_bin_type=True))
             if ttl_ms > 0:
                 pipe.pexpire(summary_key, ttl_ms)
             pipe.execute()
-        return dataclasses.replace(summary, version=session.version)
+        return dataclasses.replace(summary, version=state.stamp[0])
 
     @_redis_errors
     def purge_expired(self) -> int:
