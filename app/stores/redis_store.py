@@ -665,7 +665,9 @@ class RedisSessionStore:
         vis_key = self._key(session_id, "vis")
         # Voxel indices given: their blocks (as sized for new sessions) are read with the meta hash.
         guess = self.block_voxels
-        prefetch = [] if flat_idx is None else [str(i) for i in np.unique(np.asarray(flat_idx) // guess)]
+        idx = np.asarray(flat_idx if flat_idx is not None else [])
+        valid = idx.ndim == 1 and idx.dtype.kind in "iu" and len(idx) > 0 and idx.min() >= 0  # else refused
+        prefetch = [str(i) for i in np.flatnonzero(np.bincount(idx // guess))] if valid else []
 
         def change(meta: _Snapshot, read: list[Any]) -> tuple[Writes, UpdateResult]:
             observer = self._observer(meta.static, meta.look_alikes)

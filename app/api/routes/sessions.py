@@ -357,8 +357,8 @@ def add_observations(
     keep: slice | np.ndarray = slice(None)
     if batch.voxels is not None:
         voxels, shape = batch.voxels, np.asarray(info.grid.shape)
-        # Per-column extremes first: a batch wholly inside the grid (the usual case) needs no row mask.
-        if len(voxels) and (voxels.min() < 0 or np.any(voxels.max(axis=0) >= shape)):
+        # One pass first: a batch wholly inside the grid (the usual case) needs no row mask.
+        if len(voxels) and np.any((voxels < 0) | (voxels >= shape)):
             inside = np.all((voxels >= 0) & (voxels < shape), axis=1)
             outside = int(len(inside) - inside.sum())
             voxels, keep = voxels[inside], inside
