@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from pathlib import Path
@@ -206,6 +207,6 @@ def test_segment_sums_match_a_loop_with_empty_segments_anywhere() -> None:
     lengths = [0, 3, 0, 0, 5, 1, 0]  # empty first, in the middle and last
     flat = rng.integers(0, 50, size=sum(lengths))
     bounds = np.cumsum([0, *lengths])
-    expected = [p[flat[a:b]].astype(np.float64).sum() for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    expected = [p[flat[a:b]].astype(np.float64).sum() for a, b in itertools.pairwise(bounds)]
     np.testing.assert_allclose(_segment_sums(p, flat, bounds), expected, rtol=1e-12)
     assert _segment_sums(p, flat[:0], np.zeros(3, dtype=np.int64)).tolist() == [0.0, 0.0]

@@ -6,6 +6,7 @@ Redis tests start a private `redis-server` on a free loopback port and skip only
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import gc
 import json
@@ -682,6 +683,8 @@ def test_an_unreachable_redis_raises_store_unavailable() -> None:
     for call in (lambda: store.get("x"), lambda: store.list(), lambda: store.create(make_session())):
         with pytest.raises(StoreUnavailable):
             call()
+    with pytest.raises(StoreUnavailable):
+        asyncio.run(store.owner_and_version("x"))
     store.close()
 
 
@@ -722,6 +725,30 @@ def redis_commands(store: Any, call: Callable[[], Any]) -> list[str]:
         while (command := monitor.next_command()["command"]) != f"ECHO {marker}":
             commands.append(command)
     return commands
+
+
+def test_owner_and_version_follow_updates_deletion_and_expiry(store: Any) -> None:
+    async def peek(session_id: str) -> tuple[str, int]:
+        return await store.owner_and_version(session_id)  # on an event loop, as the poll route calls it
+
+    store.create(make_session("peeked", robot_id="robot-9"))
+    assert asyncio.run(peek("peeked")) == ("robot-9", 0)
+    store.apply_detections("peeked", [0.7], flat_idx=np.array([1]))
+    store.apply_utterance("peeked", wide_mixture(np.random.default_rng(1)))
+    assert asyncio.run(peek("peeked")) == ("robot-9", 2) == ("robot-9", store.info("peeked").version)
+    store.delete("peeked")
+    for absent in ("peeked", "never-made"):
+        with pytest.raises(NotFound):
+            asyncio.run(peek(absent))
+
+
+def test_memory_owner_and_version_of_an_expired_session_is_not_found() -> None:
+    clock = FakeClock()
+    store = MemorySessionStore(ttl_s=10.0, clock=clock)
+    store.create(make_session("brief"))
+    clock.now += 11.0
+    with pytest.raises(NotFound):
+        asyncio.run(store.owner_and_version("brief"))
 
 
 def test_info_is_get_info_without_reading_the_layers(store: Any) -> None:

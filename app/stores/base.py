@@ -49,6 +49,11 @@ class SessionStore(Protocol):
         """The session's metadata (grid, label map, sensor model, version) without reading its layers."""
         ...
 
+    async def owner_and_version(self, session_id: str) -> tuple[str, int]:
+        """The session's robot id and current version, on the event loop (no worker thread): what a poll
+        needs to check access and its ETag. NotFound if absent or expired."""
+        ...
+
     def scene_graph(self, session_id: str) -> SceneGraph:
         """The session's current scene graph, without reading its layers."""
         ...

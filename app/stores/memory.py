@@ -443,6 +443,18 @@ class MemorySessionStore:
         with self._locked(session_id) as entry:
             return entry.session.info()
 
+    async def owner_and_version(self, session_id: str) -> tuple[str, int]:
+        # No session lock (an update may hold it for milliseconds, and this runs on the event loop): the
+        # version is one attribute, read as before or after a concurrent update. Expired sessions are left
+        # for the next locked read or the purge to remove (that writes the log).
+        self._check_open()
+        with self._registry_lock:
+            entry = self._entries.get(session_id)
+        if entry is None or entry.deleted or self._expired(entry.session, self._clock()):
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        return entry.session.robot_id, entry.session.version
+
     def scene_graph(self, session_id: str) -> SceneGraph:
         with self._locked(session_id) as entry:
             return entry.session.scene_graph  # replaced whole, never changed in place: no copy needed

@@ -40,6 +40,7 @@ Any Redis failure (connection refused or lost, timeout, out of memory) raises `S
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import dataclasses
 import functools
@@ -139,6 +140,11 @@ Writes = dict[str, dict[str, Any]]
 Change = Callable[["_Snapshot", list[Any]], tuple[Writes, R]]
 
 
+def _unavailable(exc: Exception) -> StoreUnavailable:
+    msg = f"the session store (Redis) is unavailable: {type(exc).__name__}: {exc}"
+    return StoreUnavailable(msg)
+
+
 def _redis_errors(method: Callable[P, R]) -> Callable[P, R]:
     """Turn every Redis client error into StoreUnavailable (the API answers 503)."""
 
@@ -149,8 +155,7 @@ def _redis_errors(method: Callable[P, R]) -> Callable[P, R]:
         try:
             return method(*args, **kwargs)
         except RedisError as exc:
-            msg = f"the session store (Redis) is unavailable: {type(exc).__name__}: {exc}"
-            raise StoreUnavailable(msg) from exc
+            raise _unavailable(exc) from exc
 
     return wrapper
 
@@ -333,6 +338,8 @@ class RedisSessionStore:
         self._client: Any = redis.Redis.from_url(
             url, socket_timeout=socket_timeout_s, socket_connect_timeout=socket_timeout_s
         )
+        self._url, self._socket_timeout_s = url, socket_timeout_s
+        self._async: tuple[asyncio.AbstractEventLoop, Any] | None = None  # (its loop, redis.asyncio client)
         self._release = self._client.register_script(_RELEASE_SCRIPT)
         self._commit = self._client.register_script(_COMMIT_SCRIPT)
 
@@ -561,6 +568,31 @@ class RedisSessionStore:
             msg = f"no session {session_id!r}"
             raise NotFound(msg)
         return _info(session_id, msgpack.unpackb(static_raw, raw=False), version, updated_at)
+
+    def _async_client(self) -> Any:
+        """A redis.asyncio client of the running event loop (one per loop: its connections belong to it)."""
+        import redis.asyncio
+
+        loop = asyncio.get_running_loop()
+        if self._async is None or self._async[0] is not loop:
+            wait = self._socket_timeout_s
+            client = redis.asyncio.Redis.from_url(self._url, socket_timeout=wait, socket_connect_timeout=wait)
+            self._async = (loop, client)
+        return self._async[1]
+
+    async def owner_and_version(self, session_id: str) -> tuple[str, int]:
+        from redis.exceptions import RedisError
+
+        try:
+            static_raw, version = await self._async_client().hmget(
+                self._key(session_id, "meta"), ["static", "version"]
+            )
+        except RedisError as exc:
+            raise _unavailable(exc) from exc
+        if static_raw is None:
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        return str(msgpack.unpackb(static_raw, raw=False)["robot_id"]), int(version)
 
     @_redis_errors
     def scene_graph(self, session_id: str) -> SceneGraph:

@@ -448,13 +448,9 @@ def read_belief(
     fmt: str,
     layers: bool,
     top_k: int,
-    if_none_match: str | None,
 ) -> Response:
+    """The belief as `get_belief` answers it when it is neither unchanged nor summarised already."""
     info = _readable(store, principal, session_id)
-    cache.watch(session_id, top_k)
-    tag = etag(info.version)
-    if if_none_match is not None and tag in [t.strip() for t in if_none_match.split(",")]:
-        return Response(status_code=304, headers={"ETag": tag})
     if fmt == "grid":
         data, version = belief_grid(store, info, layers)  # the layers may be newer than `info`
         return Response(data, media_type="application/msgpack", headers={"ETag": etag(version)})
@@ -493,6 +489,16 @@ async def get_belief(
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
     """The fused posterior: summary (MAP, top voxels, moments, entropy, mass per object) or the whole grid."""
-    return await services.run(
-        read_belief, store, services.summaries, principal, session_id, format, layers, top_k, if_none_match
-    )
+    # Most polls find the belief unchanged (304) or its summary made already: they are answered here on the
+    # event loop, without a trip to a worker thread.
+    robot_id, version = await store.owner_and_version(session_id)
+    principal.require_read(robot_id)
+    cache = services.summaries
+    cache.watch(session_id, top_k)
+    tag = etag(version)
+    if if_none_match is not None and tag in [t.strip() for t in if_none_match.split(",")]:
+        return Response(status_code=304, headers={"ETag": tag})
+    ready = cache.get((session_id, version, top_k)) if format == "summary" else None
+    if ready is not None:
+        return Response(ready.model_dump_json(), media_type="application/json", headers={"ETag": tag})
+    return await services.run(read_belief, store, cache, principal, session_id, format, layers, top_k)
