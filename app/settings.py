@@ -65,6 +65,12 @@ class Settings(BaseSettings):
     session_ttl_s: float = Field(
         default=24 * 3600.0, gt=0, description="Sessions expire after this idle time."
     )
+    store_mirror_mib: int = Field(
+        default=256,
+        ge=0,
+        description="Redis store: MiB of session layers each process keeps as the last state it read or "
+        "wrote, so the replica that wrote last updates and summarises without reading them back (0: none).",
+    )
     summary_watch_s: float = Field(
         default=30.0,
         ge=0,

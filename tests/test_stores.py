@@ -695,6 +695,11 @@ def test_open_store_picks_the_implementation(tmp_path: Path) -> None:
     with pytest.raises(InvalidInput):
         open_store("postgres://nowhere")
     assert SensorModel().tp > SensorModel().fp
+    pytest.importorskip("redis")
+    redis_url = f"redis://127.0.0.1:{free_port()}/0"  # nothing listens: opening connects to nothing yet
+    sized = open_store(redis_url, mirror_mib=3)
+    assert isinstance(sized, SessionStore) and sized._mirror.max_bytes == 3 << 20
+    sized.close()
 
 
 # -- info() and a target class named later -------------------------------------------------------------------

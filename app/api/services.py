@@ -215,7 +215,7 @@ class Services:
     def open_store(self) -> SessionStore:
         """The store the settings name (the memory store replays its log from data_dir first)."""
         s = self.settings
-        return open_store(s.store, data_dir=s.data_dir, ttl_s=s.session_ttl_s)
+        return open_store(s.store, data_dir=s.data_dir, ttl_s=s.session_ttl_s, mirror_mib=s.store_mirror_mib)
 
     async def run(self, func: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Run CPU-bound work in the worker pool so the event loop keeps serving other requests."""

@@ -13,14 +13,21 @@ __all__ = ["DEFAULT_TTL_S", "MemorySessionStore", "SessionStore", "open_store"]
 
 
 def open_store(
-    url: str | None = None, *, data_dir: Path | str | None = None, ttl_s: float | None = DEFAULT_TTL_S
+    url: str | None = None,
+    *,
+    data_dir: Path | str | None = None,
+    ttl_s: float | None = DEFAULT_TTL_S,
+    mirror_mib: int | None = None,
 ) -> SessionStore:
-    """The store a setting names: None or "memory" -> `MemorySessionStore(data_dir)`, redis:// -> Redis."""
+    """The store a setting names: None or "memory" -> `MemorySessionStore(data_dir)`, redis:// -> Redis
+    (`mirror_mib`: its mirror's size, `RedisSessionStore`'s default when None)."""
     if url is None or url == "memory":
         return MemorySessionStore(data_dir, ttl_s=ttl_s)
     if url.startswith(("redis://", "rediss://", "unix://")):
         from app.stores.redis_store import RedisSessionStore
 
-        return RedisSessionStore(url, ttl_s=ttl_s)
+        if mirror_mib is None:
+            return RedisSessionStore(url, ttl_s=ttl_s)
+        return RedisSessionStore(url, ttl_s=ttl_s, mirror_bytes=mirror_mib << 20)
     msg = f"unknown session store {url!r}: use 'memory' or a redis:// URL"
     raise InvalidInput(msg, "session_store")
