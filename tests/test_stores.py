@@ -638,10 +638,19 @@ def test_the_replica_that_wrote_last_updates_and_summarises_from_its_mirror(redi
     store.close()
 
 
-@pytest.mark.redis
-def test_a_mirror_left_behind_by_another_replica_is_never_used(redis_url: str) -> None:
+@pytest.fixture
+def replicas(redis_url: str) -> Iterator[tuple[Any, Any]]:
+    """Two stores on one Redis, as two service processes see it (each with its own mirror)."""
     first = redis_store(redis_url)
     second = redis_store(redis_url, prefix=first.prefix)
+    yield first, second
+    first.close()
+    second.close()
+
+
+@pytest.mark.redis
+def test_a_mirror_left_behind_by_another_replica_is_never_used(replicas: tuple[Any, Any]) -> None:
+    first, second = replicas
     session = make_session()
     first.create(session)
     for step, op in enumerate(random_ops(12, 9, session.grid.n_voxels)):
@@ -654,14 +663,13 @@ def test_a_mirror_left_behind_by_another_replica_is_never_used(redis_url: str) -
             assert summary.version == session.version
             assert summary.top_voxels == expected.top_voxels
     assert_same_belief(first.get(session.id), session, exact=False)
-    first.close()
-    second.close()
 
 
 @pytest.mark.redis
-def test_a_session_made_again_under_its_id_is_not_mistaken_for_the_mirrored_one(redis_url: str) -> None:
-    first = redis_store(redis_url)
-    second = redis_store(redis_url, prefix=first.prefix)
+def test_a_session_made_again_under_its_id_is_not_mistaken_for_the_mirrored_one(
+    replicas: tuple[Any, Any],
+) -> None:
+    first, second = replicas
     first.create(make_session("again"))
     first.apply_detections("again", [0.9], flat_idx=np.array([7]))  # the first mirrors version 1
     second.delete("again")
@@ -673,8 +681,6 @@ def test_a_session_made_again_under_its_id_is_not_mistaken_for_the_mirrored_one(
         new.belief.apply_increments(new.detection_batch([p_target], flat_idx=np.array([3])))
     assert_same_belief(first.get("again"), new)
     assert first.get("again").belief.vis[7] == 0.0  # nothing of the old session
-    first.close()
-    second.close()
 
 
 def test_an_unreachable_redis_raises_store_unavailable() -> None:
