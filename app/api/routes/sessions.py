@@ -34,7 +34,7 @@ from app.api.schemas import (
     UtteranceIn,
     UtteranceOut,
 )
-from app.api.services import Services, SummaryCache
+from app.api.services import SummaryCache
 from app.api.wire import MSGPACK_TYPES, ObservationBatch, check_batch_size, decode_msgpack_batch, pack_array
 from app.belief.grid import VoxelGrid
 from app.belief.session import SensorModel, SessionInfo, check_target_label, new_session
@@ -344,7 +344,7 @@ def decode_json_batch(raw: bytes, max_voxels: int) -> ObservationBatch:
 
 def add_observations(
     store: SessionStore,
-    services: Services,
+    cache: SummaryCache,
     principal: Principal,
     session_id: str,
     batch: ObservationBatch,
@@ -372,7 +372,6 @@ def add_observations(
         result = store.apply_observations(
             session_id, batch.labels[keep], points=points, flat_idx=flat_idx, tp=batch.tp, fp=batch.fp
         )
-    cache = services.summaries
     if with_summary:
         belief = belief_out(store, cache, session_id)
     else:
@@ -420,7 +419,7 @@ async def post_observations(
 
     def decode_and_fuse() -> ObservationOut:  # one trip to a worker thread, not two
         batch = decode(raw, settings.max_batch_voxels)
-        return add_observations(store, services, principal, session_id, batch, summary)
+        return add_observations(store, services.summaries, principal, session_id, batch, summary)
 
     return await services.run(decode_and_fuse)
 
