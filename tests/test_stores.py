@@ -243,6 +243,58 @@ def test_rejected_updates_change_nothing(store: Any) -> None:
     assert got.version == 0 and not got.belief.lang.any() and not got.belief.vis.any()
 
 
+def test_voxel_coordinates_equal_flat_indices_and_those_outside_the_grid_are_counted(store: Any) -> None:
+    session = make_session()
+    store.create(session)
+    nx, ny, nz = session.grid.shape
+    flat = np.array([0, 5, session.grid.n_voxels - 1])
+    ijk = np.vstack([session.grid.flat_to_ijk(flat), [[-1, 0, 0], [nx, 0, 0], [0, ny, nz]]])
+    result = store.apply_observations(session.id, np.ones(len(ijk), dtype=np.int64), voxels=ijk)
+    assert (result.voxels_updated, result.voxels_outside) == (3, 3)
+    detections = store.apply_detections(session.id, np.full(len(ijk), 0.8), voxels=ijk)
+    assert (detections.voxels_updated, detections.voxels_outside) == (3, 3)
+    for batch in (
+        session.observation_batch(np.ones(3, dtype=np.int64), flat_idx=flat),
+        session.detection_batch(np.full(3, 0.8), flat_idx=flat),
+    ):
+        session.belief.apply_increments(batch)
+    assert_same_belief(store.get(session.id), session)
+    with pytest.raises(InvalidInput, match="voxels"):
+        store.apply_detections(session.id, [0.5], voxels=np.array([[0.5, 0.0, 0.0]]))  # not integers
+    with pytest.raises(InvalidInput, match="exactly one"):
+        store.apply_detections(session.id, [0.5], voxels=ijk[:1], flat_idx=flat[:1])
+    assert store.info(session.id).version == 2
+
+
+class Refused(Exception):
+    pass
+
+
+def test_an_update_is_authorized_against_its_owner_before_anything_changes(store: Any) -> None:
+    session = make_session(robot_id="robot-7")
+    store.create(session)
+    asked: list[str] = []
+
+    def only_robot_1(robot_id: str) -> None:
+        asked.append(robot_id)
+        if robot_id != "robot-1":
+            raise Refused(robot_id)
+
+    ijk = session.grid.flat_to_ijk(np.array([3, 4]))
+    with pytest.raises(Refused):
+        store.apply_observations(session.id, [1, 1], voxels=ijk, authorize=only_robot_1)
+    with pytest.raises(Refused):
+        store.apply_detections(session.id, [0.9, 0.9], voxels=ijk, authorize=only_robot_1)
+    with pytest.raises(Refused):  # refused before the labels are looked at (7 is not in the label map)
+        store.apply_observations(session.id, [7, 7], voxels=ijk, authorize=only_robot_1)
+    assert asked == ["robot-7"] * 3
+    got = store.get(session.id)
+    assert got.version == 0 and not got.belief.vis.any()
+    assert store.apply_detections(session.id, [0.9, 0.9], voxels=ijk, authorize=asked.append).version == 1
+    with pytest.raises(NotFound):
+        store.apply_detections("no-such-session", [0.9], voxels=ijk[:1], authorize=only_robot_1)
+
+
 def test_concurrent_updates_on_one_session_equal_the_sequential_sum(store: Any) -> None:
     session = make_session(limits=UNCLAMPED)  # clamping would make the order matter
     store.create(session)
@@ -681,6 +733,53 @@ def test_a_session_made_again_under_its_id_is_not_mistaken_for_the_mirrored_one(
         new.belief.apply_increments(new.detection_batch([p_target], flat_idx=np.array([3])))
     assert_same_belief(first.get("again"), new)
     assert first.get("again").belief.vis[7] == 0.0  # nothing of the old session
+
+
+@pytest.mark.redis
+def test_a_session_made_again_for_another_robot_is_authorized_as_that_robot(
+    replicas: tuple[Any, Any],
+) -> None:
+    first, second = replicas
+    first.create(make_session("reused", robot_id="robot-1"))
+    ijk = np.array([[0, 0, 0]])
+    first.apply_detections("reused", [0.9], voxels=ijk)  # the first mirrors robot-1's session
+    second.delete("reused")
+    second.create(make_session("reused", robot_id="robot-2"))
+    asked: list[str] = []
+
+    def only_robot_1(robot_id: str) -> None:
+        asked.append(robot_id)
+        if robot_id != "robot-1":
+            raise Refused(robot_id)
+
+    with pytest.raises(Refused):
+        first.apply_detections("reused", [0.9], voxels=ijk, authorize=only_robot_1)
+    assert asked[-1] == "robot-2"  # the owner of the state the commit would have been made on
+    assert second.get("reused").version == 0
+
+
+@pytest.mark.redis
+def test_voxel_coordinates_read_only_their_blocks_without_a_mirror(redis_url: str) -> None:
+    store = redis_store(redis_url)
+    session = make_session()
+    store.create(session)
+    far = session.grid.flat_to_ijk(np.array([0, session.grid.n_voxels - 1]))
+    fresh = redis_store(redis_url, prefix=store.prefix)  # no mirror, no grid known: the update reads
+    commands = redis_commands(fresh, lambda: fresh.apply_detections(session.id, [0.9, 0.9], voxels=far))
+    reads = _layer_reads(commands)
+    last_block = str((session.grid.n_voxels - 1) // 1024)
+    assert reads and all(c.split()[2:] in (["0", last_block], ["0"], [last_block]) for c in reads), reads
+    commands = redis_commands(fresh, lambda: fresh.apply_detections(session.id, [0.9], voxels=far[:1]))
+    assert _layer_reads(commands)  # still no mirror: only a full read makes one
+    fresh.get(session.id)
+    commands = redis_commands(fresh, lambda: fresh.apply_detections(session.id, [0.9], voxels=far[:1]))
+    assert not _layer_reads(commands)
+    both = np.array([0, session.grid.n_voxels - 1])
+    for flat in (both, both[:1], both[:1]):
+        session.belief.apply_increments(session.detection_batch(np.full(len(flat), 0.9), flat_idx=flat))
+    assert_same_belief(store.get(session.id), session)
+    fresh.close()
+    store.close()
 
 
 def test_an_unreachable_redis_raises_store_unavailable() -> None:

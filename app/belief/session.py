@@ -311,15 +311,33 @@ class ObservationModel:
         raise InvalidInput(msg, "labels")
 
     def voxel_indices(
-        self, n: int, points: np.ndarray | None, flat_idx: np.ndarray | None, max_voxels: int
+        self,
+        n: int,
+        points: np.ndarray | None,
+        flat_idx: np.ndarray | None,
+        max_voxels: int,
+        voxels: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """(indices inside the grid, mask of the n inputs kept) from one of points (n, 3) or flat_idx (n,)."""
-        if (points is None) == (flat_idx is None):
-            msg = "give exactly one of points or flat_idx"
+        """(indices inside the grid, mask of the n inputs kept) from one of points (n, 3), flat_idx (n,) or
+        voxels (n, 3) integer coordinates; points and voxels outside the grid are dropped."""
+        if sum(x is not None for x in (points, flat_idx, voxels)) != 1:
+            msg = "give exactly one of points, flat_idx or voxels"
             raise InvalidInput(msg, "points")
         if n > max_voxels:
             msg = f"a batch may carry at most {max_voxels} voxels, got {n}"
             raise LimitExceeded(msg, "max_batch_voxels")
+        if voxels is not None:
+            ijk = np.asarray(voxels)
+            if ijk.shape != (n, 3) or (n and ijk.dtype.kind not in "iu"):
+                msg = f"voxels must be ({n}, 3) integers to match the labels, got {ijk.shape} {ijk.dtype}"
+                raise InvalidInput(msg, "voxels")
+            shape = np.asarray(self.grid.shape)
+            kept = np.ones(n, dtype=bool)
+            # One pass first: a batch wholly inside the grid (the usual case) needs no row mask.
+            if n and np.any((ijk < 0) | (ijk >= shape)):
+                kept = np.all((ijk >= 0) & (ijk < shape), axis=1)
+                ijk = ijk[kept]
+            return self.grid.ijk_to_flat(ijk).astype(np.int64), kept
         if points is not None:
             pts = np.asarray(points, dtype=np.float64)
             if pts.shape != (n, 3):
@@ -345,16 +363,18 @@ class ObservationModel:
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
         tp: float | None = None,
         fp: float | None = None,
         max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
     ) -> IncrementBatch:
-        """Equation (4) for labelled voxels (points or flat indices); tp/fp override the default model.
+        """Equation (4) for labelled voxels (points, flat indices or voxel coordinates); tp/fp override the
+        default model.
 
         Voxels of mapped look-alikes are left out: their labels are explained by the mapped object.
         """
         is_target = self.is_target(labels)
-        idx, kept = self.voxel_indices(len(is_target), points, flat_idx, max_voxels)
+        idx, kept = self.voxel_indices(len(is_target), points, flat_idx, max_voxels, voxels)
         tp = self.sensor_model.tp if tp is None else tp
         fp = self.sensor_model.fp if fp is None else fp
         increments = fusion.vision_increments(is_target[kept], tp, fp)
@@ -370,12 +390,13 @@ class ObservationModel:
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
         prior: float = 0.5,
         max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
     ) -> IncrementBatch:
         """Equation (5) for voxels with detector probabilities p_target, computed under its `prior`."""
         p = np.asarray(p_target, dtype=np.float64).reshape(-1)
-        idx, kept = self.voxel_indices(len(p), points, flat_idx, max_voxels)
+        idx, kept = self.voxel_indices(len(p), points, flat_idx, max_voxels, voxels)
         return IncrementBatch(idx, fusion.detector_increments(p[kept], prior), int(len(kept) - kept.sum()))
 
 
@@ -447,13 +468,14 @@ class Session:
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
         tp: float | None = None,
         fp: float | None = None,
         max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
     ) -> IncrementBatch:
         """`ObservationModel.observation_batch` for this session."""
         return self.observer.observation_batch(
-            labels, points=points, flat_idx=flat_idx, tp=tp, fp=fp, max_voxels=max_voxels
+            labels, points=points, flat_idx=flat_idx, voxels=voxels, tp=tp, fp=fp, max_voxels=max_voxels
         )
 
     def detection_batch(
@@ -462,12 +484,13 @@ class Session:
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
         prior: float = 0.5,
         max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
     ) -> IncrementBatch:
         """`ObservationModel.detection_batch` for this session."""
         return self.observer.detection_batch(
-            p_target, points=points, flat_idx=flat_idx, prior=prior, max_voxels=max_voxels
+            p_target, points=points, flat_idx=flat_idx, voxels=voxels, prior=prior, max_voxels=max_voxels
         )
 
     def summary(

@@ -15,7 +15,7 @@ it. An expired session behaves as deleted (`NotFound`).
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -31,6 +31,9 @@ DEFAULT_TTL_S = 24 * 3600.0
 
 # Ids become file names (memory store) and key parts (Redis): letters, digits, ".", "_", "-"; no leading dot.
 _SESSION_ID = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9._\-]{0,127}")
+
+#: Called with a session's robot id before an update changes it; raises to refuse (e.g. `Forbidden`).
+Authorize = Callable[[str], None]
 
 
 @runtime_checkable
@@ -85,12 +88,18 @@ class SessionStore(Protocol):
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
         tp: float | None = None,
         fp: float | None = None,
+        authorize: Authorize | None = None,
     ) -> UpdateResult:
         """Fuse labelled voxels (fusion equation (4)); tp/fp override the session's sensor model.
 
-        Conflict while the session's target label is "" (unknown).
+        The voxels are given as exactly one of points (n, 3), flat indices (n,) or integer voxel coordinates
+        (n, 3); points and coordinates outside the grid are counted in `voxels_outside`, not fused.
+        `authorize(robot_id)`, if given, is called with the owner of the state the update is computed from,
+        before anything changes; what it raises refuses the update. Conflict while the session's target
+        label is "" (unknown).
         """
         ...
 
@@ -101,9 +110,12 @@ class SessionStore(Protocol):
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
         prior: float = 0.5,
+        authorize: Authorize | None = None,
     ) -> UpdateResult:
-        """Fuse detector probabilities (fusion equation (5))."""
+        """Fuse detector probabilities (fusion equation (5)); the voxels and `authorize` as in
+        `apply_observations`."""
         ...
 
     def read_layers(self, session_id: str) -> BeliefState:

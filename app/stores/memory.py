@@ -56,6 +56,7 @@ from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
 from app.stores.base import (
     DEFAULT_TTL_S,
+    Authorize,
     check_session_id,
     compact_indices,
     float64_mixture,
@@ -535,12 +536,22 @@ class MemorySessionStore:
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
         tp: float | None = None,
         fp: float | None = None,
+        authorize: Authorize | None = None,
     ) -> UpdateResult:
         with self._locked(session_id) as entry:
+            if authorize is not None:
+                authorize(entry.session.robot_id)
             batch = entry.session.observation_batch(
-                labels, points=points, flat_idx=flat_idx, tp=tp, fp=fp, max_voxels=self.max_batch_voxels
+                labels,
+                points=points,
+                flat_idx=flat_idx,
+                voxels=voxels,
+                tp=tp,
+                fp=fp,
+                max_voxels=self.max_batch_voxels,
             )
             result = self._apply_batch(entry, batch)
         self._maybe_compact()
@@ -553,11 +564,20 @@ class MemorySessionStore:
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
         prior: float = 0.5,
+        authorize: Authorize | None = None,
     ) -> UpdateResult:
         with self._locked(session_id) as entry:
+            if authorize is not None:
+                authorize(entry.session.robot_id)
             batch = entry.session.detection_batch(
-                p_target, points=points, flat_idx=flat_idx, prior=prior, max_voxels=self.max_batch_voxels
+                p_target,
+                points=points,
+                flat_idx=flat_idx,
+                voxels=voxels,
+                prior=prior,
+                max_voxels=self.max_batch_voxels,
             )
             result = self._apply_batch(entry, batch)
         self._maybe_compact()

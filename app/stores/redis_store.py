@@ -75,7 +75,7 @@ from app.belief.summary import PosteriorSummary, json_fingerprint, summarize
 from app.errors import InvalidInput, NotFound, StoreUnavailable
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
-from app.stores.base import DEFAULT_TTL_S, check_session_id, float64_mixture
+from app.stores.base import DEFAULT_TTL_S, Authorize, check_session_id, float64_mixture
 
 #: Voxels per stored block of a new session: 4 kB of float32. A camera's 10k-voxel batch in a 163k-voxel room
 #: touches 160 kB of 1024-voxel blocks, against 550 kB of the 65,536-voxel blocks first used: each update
@@ -134,6 +134,8 @@ P = ParamSpec("P")
 R = TypeVar("R")
 #: A read queued beside the meta hash: (redis-py command name, key, *arguments).
 Read = tuple[Any, ...]
+#: An update's reads, or a function that makes them (called only when the update reads).
+Reads = Sequence[Read] | Callable[[], Sequence[Read]]
 #: Hashes an update writes: key -> {field: value}.
 Writes = dict[str, dict[str, Any]]
 #: change(what the meta hash held, read results) -> (writes, result)
@@ -392,11 +394,12 @@ class RedisSessionStore:
         finally:
             self._release(keys=[key], args=[token])
 
-    def _update(self, session_id: str, change: Change[R], reads: Sequence[Read] = ()) -> R:
+    def _update(self, session_id: str, change: Change[R], reads: Reads = ()) -> R:
         """One read-compute-commit of a session (see the module docstring).
 
-        `reads` are (command, key, *args) read in the same transaction as the meta hash; `change(snapshot,
-        results)` gets the meta hash's fields and their results and returns (hashes to write, result).
+        `reads` are (command, key, *args) read in the same transaction as the meta hash (or a function that
+        makes them, called only if an attempt reads); `change(snapshot, results)` gets the meta hash's
+        fields and their results and returns (hashes to write, result).
         """
         mirrored = self._mirror.get(session_id)
         for _ in range(_OPTIMISTIC_ATTEMPTS):
@@ -418,7 +421,7 @@ class RedisSessionStore:
         self,
         session_id: str,
         change: Change[R],
-        reads: Sequence[Read],
+        reads: Reads,
         token: str,
         mirrored: _Mirrored | None = None,
     ) -> tuple[R] | None:
@@ -431,7 +434,7 @@ class RedisSessionStore:
         else:
             with self._client.pipeline(transaction=True) as pipe:
                 pipe.hmget(meta_key, ["static", "version", "updated_at", "look_alikes", "block_voxels"])
-                for command, key, *arguments in reads:
+                for command, key, *arguments in reads() if callable(reads) else reads:
                     getattr(pipe, command)(key, *arguments)
                 (static_raw, version_raw, updated_at, look_alikes, block_voxels), *results = pipe.execute()
             if static_raw is None:
@@ -693,15 +696,34 @@ class RedisSessionStore:
         session_id: str,
         make_batch: Callable[[ObservationModel], IncrementBatch],
         flat_idx: np.ndarray | None,
+        voxels: np.ndarray | None,
+        authorize: Authorize | None,
     ) -> UpdateResult:
         vis_key = self._key(session_id, "vis")
-        # Voxel indices given: their blocks (as sized for new sessions) are read with the meta hash.
         guess = self.block_voxels
-        idx = np.asarray(flat_idx if flat_idx is not None else [])
-        valid = idx.ndim == 1 and idx.dtype.kind in "iu" and len(idx) > 0 and idx.min() >= 0  # else refused
-        prefetch = [str(i) for i in np.flatnonzero(np.bincount(idx // guess))] if valid else []
+
+        @functools.cache
+        def prefetch() -> tuple[str, ...]:
+            """The blocks (as sized for new sessions) that a read attempt fetches with the meta hash: those
+            of the flat indices, or of the voxel coordinates on the grid the mirror knows (a session's grid
+            never changes). Computed only if an attempt reads: an update from the mirror reads nothing."""
+            idx = np.asarray(flat_idx if flat_idx is not None else [])
+            known = self._mirror.get(session_id) if voxels is not None else None
+            ijk = np.asarray(voxels if voxels is not None else [])
+            if known is not None and ijk.ndim == 2 and ijk.shape[1:] == (3,) and ijk.dtype.kind in "iu":
+                shape = tuple(known.static["grid"]["shape"])
+                inside = np.all((ijk >= 0) & (ijk < shape), axis=1)
+                idx = np.ravel_multi_index(tuple(ijk[inside].T), shape)
+            if not (idx.ndim == 1 and idx.dtype.kind in "iu" and len(idx) > 0 and idx.min() >= 0):
+                return ()  # none to guess, or a batch the update will refuse
+            return tuple(str(i) for i in np.flatnonzero(np.bincount(idx // guess)))
+
+        def reads() -> list[Read]:
+            return [("hmget", vis_key, list(prefetch()))] if prefetch() else []
 
         def change(meta: _Snapshot, read: list[Any]) -> tuple[Writes, UpdateResult]:
+            if authorize is not None:
+                authorize(meta.static["robot_id"])
             observer = self._observer(meta.static, meta.look_alikes)
             limits = fusion.LayerLimits(**meta.static["limits"])
             batch = make_batch(observer)
@@ -714,9 +736,10 @@ class RedisSessionStore:
                     block = meta.mirror.vis[int(i) * b : (int(i) + 1) * b]
                     local[slot * b : slot * b + len(block)] = block
             else:
-                stored = dict(zip(prefetch, read[0], strict=True)) if prefetch and b == guess else {}
+                fetched = prefetch()
+                stored = dict(zip(fetched, read[0], strict=True)) if fetched and b == guess else {}
                 missing = [name for name in names if name not in stored]
-                if missing:  # points, or an older block size; a concurrent change fails the commit (retried)
+                if missing:  # unguessed, or an older block size; a concurrent change fails the commit
                     stored.update(zip(missing, self._client.hmget(vis_key, missing), strict=True))
                 for slot, name in enumerate(names):
                     data = stored[name]
@@ -733,7 +756,7 @@ class RedisSessionStore:
             result = UpdateResult(session_id, meta.new_version, len(batch.flat_idx), batch.n_outside)
             return ({vis_key: blocks} if blocks else {}), result
 
-        return self._update(session_id, change, reads=[("hmget", vis_key, prefetch)] if prefetch else [])
+        return self._update(session_id, change, reads=reads)
 
     @_redis_errors
     def apply_observations(
@@ -743,15 +766,25 @@ class RedisSessionStore:
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
         tp: float | None = None,
         fp: float | None = None,
+        authorize: Authorize | None = None,
     ) -> UpdateResult:
         return self._apply_batch(
             session_id,
             lambda observer: observer.observation_batch(
-                labels, points=points, flat_idx=flat_idx, tp=tp, fp=fp, max_voxels=self.max_batch_voxels
+                labels,
+                points=points,
+                flat_idx=flat_idx,
+                voxels=voxels,
+                tp=tp,
+                fp=fp,
+                max_voxels=self.max_batch_voxels,
             ),
             flat_idx,
+            voxels,
+            authorize,
         )
 
     @_redis_errors
@@ -762,14 +795,23 @@ class RedisSessionStore:
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
         prior: float = 0.5,
+        authorize: Authorize | None = None,
     ) -> UpdateResult:
         return self._apply_batch(
             session_id,
             lambda observer: observer.detection_batch(
-                p_target, points=points, flat_idx=flat_idx, prior=prior, max_voxels=self.max_batch_voxels
+                p_target,
+                points=points,
+                flat_idx=flat_idx,
+                voxels=voxels,
+                prior=prior,
+                max_voxels=self.max_batch_voxels,
             ),
             flat_idx,
+            voxels,
+            authorize,
         )
 
     @_redis_errors

@@ -350,27 +350,26 @@ def add_observations(
     batch: ObservationBatch,
     with_summary: bool = True,
 ) -> ObservationOut:
-    """Map voxels to flat indices (out-of-grid ones counted, not fatal), then fuse the batch."""
-    info = _writable(store, principal, session_id)
-    outside = 0
-    flat_idx = points = None
-    keep: slice | np.ndarray = slice(None)
-    if batch.voxels is not None:
-        voxels, shape = batch.voxels, np.asarray(info.grid.shape)
-        # One pass first: a batch wholly inside the grid (the usual case) needs no row mask.
-        if len(voxels) and np.any((voxels < 0) | (voxels >= shape)):
-            inside = np.all((voxels >= 0) & (voxels < shape), axis=1)
-            outside = int(len(inside) - inside.sum())
-            voxels, keep = voxels[inside], inside
-        flat_idx = info.grid.ijk_to_flat(voxels).astype(np.int64)
-    else:
-        points = batch.points
+    """Fuse the batch (the caller's right to write is checked by the store, against the state it updates;
+    voxels outside the grid are counted, not fatal)."""
     if batch.p_target is not None:
-        result = store.apply_detections(session_id, batch.p_target[keep], points=points, flat_idx=flat_idx)
+        result = store.apply_detections(
+            session_id,
+            batch.p_target,
+            points=batch.points,
+            voxels=batch.voxels,
+            authorize=principal.require_write,
+        )
     else:
         assert batch.labels is not None
         result = store.apply_observations(
-            session_id, batch.labels[keep], points=points, flat_idx=flat_idx, tp=batch.tp, fp=batch.fp
+            session_id,
+            batch.labels,
+            points=batch.points,
+            voxels=batch.voxels,
+            tp=batch.tp,
+            fp=batch.fp,
+            authorize=principal.require_write,
         )
     if with_summary:
         belief = belief_out(store, cache, session_id)
@@ -381,7 +380,7 @@ def add_observations(
         version=result.version,
         stamp=batch.stamp,
         voxels_updated=result.voxels_updated,
-        voxels_outside=outside + result.voxels_outside,
+        voxels_outside=result.voxels_outside,
         belief=belief,
     )
 
