@@ -10,6 +10,7 @@ import asyncio
 import dataclasses
 import gc
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -23,7 +24,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.api.launcher import free_port
+from app.api.launcher import RedisServer, free_port
 from app.belief.fusion import LayerLimits
 from app.belief.session import SensorModel, Session, new_session
 from app.belief.summary import summarize
@@ -782,6 +783,54 @@ def test_voxel_coordinates_read_only_their_blocks_without_a_mirror(redis_url: st
     store.close()
 
 
+@pytest.mark.redis
+def test_an_event_loop_update_takes_a_worker_thread_only_when_it_must_read(
+    replicas: tuple[Any, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    first, second = replicas
+    session = make_session()
+    first.create(session)
+    threads: list[Any] = []
+    to_thread = asyncio.to_thread
+
+    async def counted(func: Any, *args: Any, **kwargs: Any) -> Any:
+        threads.append(func)
+        return await to_thread(func, *args, **kwargs)
+
+    monkeypatch.setattr(asyncio, "to_thread", counted)
+    ijk = session.grid.flat_to_ijk(np.array([2, session.grid.n_voxels - 2]))
+
+    def detect(store: Any, p: float) -> list[str]:
+        session.belief.apply_increments(session.detection_batch([p, p], voxels=ijk))
+        return redis_commands(
+            store, lambda: asyncio.run(store.apply_detections_async(session.id, [p, p], voxels=ijk))
+        )
+
+    assert not _layer_reads(detect(first, 0.8)) and not threads  # from the mirror made by create
+    second.apply_detections(session.id, [0.3], voxels=ijk[:1])  # the first's mirror is now stale
+    session.belief.apply_increments(session.detection_batch([0.3], voxels=ijk[:1]))
+    assert _layer_reads(detect(first, 0.6)) and len(threads) == 1  # its commit failed: it read, on a thread
+    first.get(session.id)  # a full read mirrors the session again
+    assert not _layer_reads(detect(first, 0.7)) and len(threads) == 1
+    assert_same_belief(second.get(session.id), session)
+
+
+@pytest.mark.redis
+def test_an_event_loop_update_with_redis_down_raises_store_unavailable() -> None:
+    server = RedisServer(shutil.which("redis-server") or "redis-server")
+    server.start()
+    store = redis_store(server.url, socket_timeout_s=1.0)
+    try:
+        session = make_session()
+        store.create(session)  # mirrored: the update would need no read
+        server.stop()
+        with pytest.raises(StoreUnavailable):
+            asyncio.run(store.apply_detections_async(session.id, [0.9], voxels=np.array([[0, 0, 0]])))
+    finally:
+        store.close()
+        server.close()
+
+
 def test_an_unreachable_redis_raises_store_unavailable() -> None:
     pytest.importorskip("redis")
     store = open_store(f"redis://127.0.0.1:{free_port()}/0")
@@ -850,6 +899,38 @@ def test_owner_and_version_follow_updates_deletion_and_expiry(store: Any) -> Non
     for absent in ("peeked", "never-made"):
         with pytest.raises(NotFound):
             asyncio.run(peek(absent))
+
+
+def test_the_event_loop_updates_equal_the_threaded_ones_and_check_the_writer(store: Any) -> None:
+    session = make_session(robot_id="robot-3")
+    store.create(session)
+    rng = np.random.default_rng(5)
+    allow: Callable[[str], None] = lambda robot_id: None  # noqa: E731
+
+    def refuse(robot_id: str) -> None:
+        raise Refused(robot_id)
+
+    async def stream() -> list[int]:  # as the observation route calls them, on one event loop
+        versions = []
+        for step in range(6):
+            ijk = session.grid.flat_to_ijk(rng.integers(0, session.grid.n_voxels, size=40))
+            labels = rng.integers(0, 2, size=40)
+            if step % 2:
+                result = await store.apply_observations_async(session.id, labels, voxels=ijk, authorize=allow)
+                session.belief.apply_increments(session.observation_batch(labels, voxels=ijk))
+            else:
+                p = rng.uniform(0.05, 0.95, size=40)
+                result = await store.apply_detections_async(session.id, p, voxels=ijk, authorize=allow)
+                session.belief.apply_increments(session.detection_batch(p, voxels=ijk))
+            versions.append(result.version)
+        with pytest.raises(Refused):
+            await store.apply_detections_async(session.id, [0.9], voxels=ijk[:1], authorize=refuse)
+        with pytest.raises(NotFound):
+            await store.apply_observations_async("never-made", [1], voxels=ijk[:1])
+        return versions
+
+    assert asyncio.run(stream()) == [1, 2, 3, 4, 5, 6]
+    assert_same_belief(store.get(session.id), session)
 
 
 def test_memory_owner_and_version_of_an_expired_session_is_not_found() -> None:

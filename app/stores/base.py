@@ -118,6 +118,35 @@ class SessionStore(Protocol):
         `apply_observations`."""
         ...
 
+    async def apply_observations_async(
+        self,
+        session_id: str,
+        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
+        tp: float | None = None,
+        fp: float | None = None,
+        authorize: Authorize | None = None,
+    ) -> UpdateResult:
+        """`apply_observations` for a caller on an event loop, which it never blocks on I/O or a lock."""
+        ...
+
+    async def apply_detections_async(
+        self,
+        session_id: str,
+        p_target: np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
+        prior: float = 0.5,
+        authorize: Authorize | None = None,
+    ) -> UpdateResult:
+        """`apply_detections` for a caller on an event loop, which it never blocks on I/O or a lock."""
+        ...
+
     def read_layers(self, session_id: str) -> BeliefState:
         """A consistent copy of the belief layers and their version."""
         ...

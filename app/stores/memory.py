@@ -23,6 +23,7 @@ session, then registry, then log.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import dataclasses
 import fcntl
@@ -33,6 +34,7 @@ import threading
 import time
 import zlib
 from collections.abc import Callable, Iterator, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -582,6 +584,13 @@ class MemorySessionStore:
             result = self._apply_batch(entry, batch)
         self._maybe_compact()
         return result
+
+    async def apply_observations_async(self, session_id: str, *args: Any, **kwargs: Any) -> UpdateResult:
+        # On a worker thread: an update waits for the session's lock and (durable) appends to the log.
+        return await asyncio.to_thread(partial(self.apply_observations, session_id, *args, **kwargs))
+
+    async def apply_detections_async(self, session_id: str, *args: Any, **kwargs: Any) -> UpdateResult:
+        return await asyncio.to_thread(partial(self.apply_detections, session_id, *args, **kwargs))
 
     def read_layers(self, session_id: str) -> BeliefState:
         with self._locked(session_id) as entry:

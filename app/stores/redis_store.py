@@ -277,6 +277,12 @@ class _Snapshot:
     block_voxels: int
     mirror: _Mirrored | None = None
 
+    @classmethod
+    def of(cls, mirrored: _Mirrored) -> _Snapshot:
+        """What an update computes from when it takes the mirrored state."""
+        version = mirrored.stamp[0]
+        return cls(mirrored.static, version + 1, mirrored.look_alikes, mirrored.block_voxels, mirrored)
+
 
 def _static_meta(session: Session) -> dict[str, Any]:
     meta = session.meta()
@@ -341,7 +347,8 @@ class RedisSessionStore:
             url, socket_timeout=socket_timeout_s, socket_connect_timeout=socket_timeout_s
         )
         self._url, self._socket_timeout_s = url, socket_timeout_s
-        self._async: tuple[asyncio.AbstractEventLoop, Any] | None = None  # (its loop, redis.asyncio client)
+        # (its loop, a redis.asyncio client, the commit script on it)
+        self._async: tuple[asyncio.AbstractEventLoop, Any, Any] | None = None
         self._release = self._client.register_script(_RELEASE_SCRIPT)
         self._commit = self._client.register_script(_COMMIT_SCRIPT)
 
@@ -426,48 +433,81 @@ class RedisSessionStore:
         mirrored: _Mirrored | None = None,
     ) -> tuple[R] | None:
         """Read (or take the mirrored state), compute, commit once; None when another writer came first."""
-        meta_key = self._key(session_id, "meta")
         if mirrored is not None:
-            (version, updated_at), static = mirrored.stamp, mirrored.static
-            snapshot = _Snapshot(static, version + 1, mirrored.look_alikes, mirrored.block_voxels, mirrored)
-            results: list[Any] = []
+            stamp, snapshot, results = mirrored.stamp, _Snapshot.of(mirrored), []
         else:
             with self._client.pipeline(transaction=True) as pipe:
-                pipe.hmget(meta_key, ["static", "version", "updated_at", "look_alikes", "block_voxels"])
+                pipe.hmget(
+                    self._key(session_id, "meta"),
+                    ["static", "version", "updated_at", "look_alikes", "block_voxels"],
+                )
                 for command, key, *arguments in reads() if callable(reads) else reads:
                     getattr(pipe, command)(key, *arguments)
                 (static_raw, version_raw, updated_at, look_alikes, block_voxels), *results = pipe.execute()
             if static_raw is None:
                 msg = f"no session {session_id!r}"
                 raise NotFound(msg)
-            static, version = msgpack.unpackb(static_raw, raw=False), int(version_raw)
+            stamp = (int(version_raw), updated_at)
             look_alike_idx = np.frombuffer(look_alikes or b"", dtype="<i8")
-            snapshot = _Snapshot(static, version + 1, look_alike_idx, _block_voxels(block_voxels))
+            static = msgpack.unpackb(static_raw, raw=False)
+            snapshot = _Snapshot(static, stamp[0] + 1, look_alike_idx, _block_voxels(block_voxels))
         writes, result = change(snapshot, results)
         now = self._clock()
+        keys, args = self._commit_arguments(session_id, stamp, snapshot.static, token, writes, now)
+        outcome = self._commit(keys=keys, args=args)
+        return (result,) if self._committed(session_id, outcome, stamp, writes, now, mirrored) else None
+
+    async def _attempt_from_mirror(
+        self, session_id: str, change: Change[R], mirrored: _Mirrored
+    ) -> tuple[R] | None:
+        """`_attempt` from the mirrored state, committed through the running event loop's client."""
+        writes, result = change(_Snapshot.of(mirrored), [])
+        now = self._clock()
+        keys, args = self._commit_arguments(session_id, mirrored.stamp, mirrored.static, "", writes, now)
+        outcome = await self._async_client()[1](keys=keys, args=args)
+        return (
+            (result,) if self._committed(session_id, outcome, mirrored.stamp, writes, now, mirrored) else None
+        )
+
+    def _commit_arguments(
+        self, session_id: str, stamp: Stamp, static: dict[str, Any], token: str, writes: Writes, now: float
+    ) -> tuple[list[str], list[Any]]:
+        """KEYS and ARGV of `_COMMIT_SCRIPT` for writes computed from the state named `stamp`."""
         expiry = self._expiry_ms(now)
         finite = math.isfinite(expiry)
         index_keys = [self._index_key(), self._index_key(static["robot_id"])]
-        keys = [meta_key, self._key(session_id, "lock"), *index_keys]
+        keys = [self._key(session_id, "meta"), self._key(session_id, "lock"), *index_keys]
         keys += [self._key(session_id, part) for part in ("lang", "vis", "summary")]
-        args: list[Any] = [version, updated_at, token, repr(now), int(expiry) if finite else "inf"]
+        args: list[Any] = [stamp[0], stamp[1], token, repr(now), int(expiry) if finite else "inf"]
         args += [int(expiry) if finite else "", session_id, len(writes)]
         for key, fields in writes.items():
             keys.append(key)
             args.append(len(fields))
             for field_name, value in fields.items():
                 args += [field_name, value]
-        outcome = self._commit(keys=keys, args=args)
+        return keys, args
+
+    def _committed(
+        self,
+        session_id: str,
+        outcome: int,
+        stamp: Stamp,
+        writes: Writes,
+        now: float,
+        mirrored: _Mirrored | None,
+    ) -> bool:
+        """The commit script's outcome: True if it wrote (the mirror then follows), False if another writer
+        came first; NotFound if the session is gone."""
         if outcome == -1:
             msg = f"no session {session_id!r}"
             raise NotFound(msg)
         if outcome == -2:
-            return None
-        base = mirrored or self._mirror.get(session_id, (version, updated_at))
+            return False
+        base = mirrored or self._mirror.get(session_id, stamp)
         if base is not None:  # the mirror follows the commit (with the bytes Redis now holds)
             parts = {key.rsplit(":", 1)[1]: fields for key, fields in writes.items()}
-            self._mirror.put(session_id, base.after(parts, (version + 1, repr(now).encode())))
-        return (result,)
+            self._mirror.put(session_id, base.after(parts, (stamp[0] + 1, repr(now).encode())))
+        return True
 
     # -- SessionStore ---------------------------------------------------------------------------------------
 
@@ -572,22 +612,23 @@ class RedisSessionStore:
             raise NotFound(msg)
         return _info(session_id, msgpack.unpackb(static_raw, raw=False), version, updated_at)
 
-    def _async_client(self) -> Any:
-        """A redis.asyncio client of the running event loop (one per loop: its connections belong to it)."""
+    def _async_client(self) -> tuple[Any, Any]:
+        """A redis.asyncio client of the running event loop (one per loop: its connections belong to it) and
+        the commit script registered on it."""
         import redis.asyncio
 
         loop = asyncio.get_running_loop()
         if self._async is None or self._async[0] is not loop:
             wait = self._socket_timeout_s
             client = redis.asyncio.Redis.from_url(self._url, socket_timeout=wait, socket_connect_timeout=wait)
-            self._async = (loop, client)
-        return self._async[1]
+            self._async = (loop, client, client.register_script(_COMMIT_SCRIPT))
+        return self._async[1], self._async[2]
 
     async def owner_and_version(self, session_id: str) -> tuple[str, int]:
         from redis.exceptions import RedisError
 
         try:
-            static_raw, version = await self._async_client().hmget(
+            static_raw, version = await self._async_client()[0].hmget(
                 self._key(session_id, "meta"), ["static", "version"]
             )
         except RedisError as exc:
@@ -691,14 +732,15 @@ class RedisSessionStore:
             look_alikes,
         )
 
-    def _apply_batch(
+    def _batch_update(
         self,
         session_id: str,
         make_batch: Callable[[ObservationModel], IncrementBatch],
         flat_idx: np.ndarray | None,
         voxels: np.ndarray | None,
         authorize: Authorize | None,
-    ) -> UpdateResult:
+    ) -> tuple[Change[UpdateResult], Callable[[], Sequence[Read]]]:
+        """The change an observation or detection batch makes, and the reads it needs when it reads."""
         vis_key = self._key(session_id, "vis")
         guess = self.block_voxels
 
@@ -756,7 +798,29 @@ class RedisSessionStore:
             result = UpdateResult(session_id, meta.new_version, len(batch.flat_idx), batch.n_outside)
             return ({vis_key: blocks} if blocks else {}), result
 
+        return change, reads
+
+    def _apply_batch(self, session_id: str, *batch_update: Any) -> UpdateResult:
+        change, reads = self._batch_update(session_id, *batch_update)
         return self._update(session_id, change, reads=reads)
+
+    async def _apply_batch_async(self, session_id: str, *batch_update: Any) -> UpdateResult:
+        """`_apply_batch` for a caller on an event loop: from the mirror it computes there and commits with
+        the loop's client (no worker thread); otherwise, or when another writer came first, it runs the
+        reading update on a worker thread."""
+        from redis.exceptions import RedisError
+
+        change, reads = self._batch_update(session_id, *batch_update)
+        mirrored = self._mirror.get(session_id)
+        if mirrored is not None:
+            try:
+                committed = await self._attempt_from_mirror(session_id, change, mirrored)
+            except RedisError as exc:
+                raise _unavailable(exc) from exc
+            if committed is not None:
+                return committed[0]
+            self._mirror.drop(session_id)  # another replica wrote since: read from now on
+        return await asyncio.to_thread(_redis_errors(self._update), session_id, change, reads)
 
     @_redis_errors
     def apply_observations(
@@ -800,6 +864,60 @@ class RedisSessionStore:
         authorize: Authorize | None = None,
     ) -> UpdateResult:
         return self._apply_batch(
+            session_id,
+            lambda observer: observer.detection_batch(
+                p_target,
+                points=points,
+                flat_idx=flat_idx,
+                voxels=voxels,
+                prior=prior,
+                max_voxels=self.max_batch_voxels,
+            ),
+            flat_idx,
+            voxels,
+            authorize,
+        )
+
+    async def apply_observations_async(
+        self,
+        session_id: str,
+        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
+        tp: float | None = None,
+        fp: float | None = None,
+        authorize: Authorize | None = None,
+    ) -> UpdateResult:
+        return await self._apply_batch_async(
+            session_id,
+            lambda observer: observer.observation_batch(
+                labels,
+                points=points,
+                flat_idx=flat_idx,
+                voxels=voxels,
+                tp=tp,
+                fp=fp,
+                max_voxels=self.max_batch_voxels,
+            ),
+            flat_idx,
+            voxels,
+            authorize,
+        )
+
+    async def apply_detections_async(
+        self,
+        session_id: str,
+        p_target: np.ndarray,
+        *,
+        points: np.ndarray | None = None,
+        flat_idx: np.ndarray | None = None,
+        voxels: np.ndarray | None = None,
+        prior: float = 0.5,
+        authorize: Authorize | None = None,
+    ) -> UpdateResult:
+        return await self._apply_batch_async(
             session_id,
             lambda observer: observer.detection_batch(
                 p_target,
