@@ -22,6 +22,7 @@ import asyncio
 import contextlib
 import json
 import math
+import multiprocessing
 import os
 import shutil
 import signal
@@ -31,6 +32,7 @@ import time
 from collections import defaultdict
 from contextlib import ExitStack
 from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -331,6 +333,57 @@ def machine_times() -> np.ndarray:
     return np.array([int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:9]])
 
 
+def _spin(seconds: float) -> None:
+    deadline = time.perf_counter() + seconds
+    while time.perf_counter() < deadline:
+        pass
+
+
+def _ping(conn: Connection, seconds: float) -> None:
+    """Ask, wait for the answer, pause 1 ms; until `seconds` have passed (then close the pair)."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        conn.send_bytes(b"?")
+        conn.recv_bytes()
+        time.sleep(0.001)
+    conn.send_bytes(b"")
+
+
+def _pong(conn: Connection) -> None:
+    """Answer each question after 1 ms of work."""
+    while conn.recv_bytes():
+        _spin(0.001)
+        conn.send_bytes(b"!")
+
+
+def host_steal(seconds: float = 3.0) -> dict[str, float]:
+    """Shares of the machine's CPU time the hypervisor stole while, with nothing of the service running,
+    (a) two pairs of processes woke each other about 500 times a second each, as requests and replies do,
+    and (b) two processes spun. On a shared host (a) is often far above (b): a vCPU that wakes from idle
+    waits for the host to run it, and a request's latency is a chain of such wake-ups."""
+    fork = multiprocessing.get_context("fork")  # before any thread or service starts
+    out = {}
+    for name in ("waking", "spinning"):
+        machine = machine_times()
+        if name == "waking":
+            children = []
+            for _ in range(2):
+                ours, theirs = fork.Pipe()
+                children += [
+                    fork.Process(target=_ping, args=(ours, seconds)),
+                    fork.Process(target=_pong, args=(theirs,)),
+                ]
+        else:
+            children = [fork.Process(target=_spin, args=(seconds,)) for _ in range(2)]
+        for child in children:
+            child.start()
+        for child in children:
+            child.join()
+        spent = machine_times() - machine
+        out[name] = round(float(spent[7] / max(1, spent.sum())), 2)
+    return out
+
+
 def cpu_shares(pids: dict[str, int | None], run: Any, seconds: float) -> dict[str, float]:
     """Run `run()` and return how many cores each process kept busy on average meanwhile, and the shares of
     the machine's CPU time that were idle and stolen by the hypervisor (a virtual machine's neighbours)."""
@@ -418,6 +471,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument("--store", choices=["redis", "memory"], default="redis")
     parser.add_argument("--faults", default="redis,kill,disconnect", help="comma list, or empty for none")
+    parser.add_argument(
+        "--host-probe-s",
+        type=float,
+        default=3.0,
+        help="seconds of each host probe run before the service starts (CPU stolen while waking, spinning)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = parser.parse_args(argv)
@@ -426,6 +485,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         parser.error("the embedded store serves one process: use --replicas 1 with --store memory")
     scene = json.loads(SCENE.read_text())
     results: dict[str, Any] = {"config": vars(args) | {"json": str(args.json)}}
+    results["host_stolen"] = host_steal(args.host_probe_s)
+    print(
+        "Host before the run, nothing of ours running: CPU stolen by the hypervisor "
+        f"{results['host_stolen']['waking']:.0%} while processes woke each other, "
+        f"{results['host_stolen']['spinning']:.0%} while they spun"
+    )
     with ExitStack() as stack:
         env: dict[str, str] = {
             "VLMAP_RATE_LIMIT_PER_S": "0",

@@ -15,8 +15,13 @@ from bench import fleet
 )
 def test_small_fleet_survives_redis_restart_kill_9_and_disconnects() -> None:
     results = fleet.main(
-        ["--robots", "3", "--dashboards", "1", "--voxels", "2000", "--duration", "3", "--fault-duration", "6"]
+        [
+            *("--robots", "3", "--dashboards", "1", "--voxels", "2000"),
+            *("--duration", "3", "--fault-duration", "6", "--host-probe-s", "0.5"),
+        ]
     )
+    assert set(results["host_stolen"]) == {"waking", "spinning"}
+    assert all(0.0 <= share <= 1.0 for share in results["host_stolen"].values())
     # Steady load: no error at all.
     for route, row in results["load"].items():
         assert row["errors"] == {}, (route, row)
