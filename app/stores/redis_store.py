@@ -31,6 +31,9 @@ updates without the read (it computes from the mirror and commits on the conditi
 still has that name; when another replica wrote meanwhile, the commit fails and the update reads), and
 summarises a version it wrote without reading the whole belief back. The mirror is never needed to be
 right: the commit's condition is checked in Redis, and a state is taken from it only under its name.
+An observation batch's update from the mirror also runs on the caller's event loop
+(`apply_observations_async`), committed through that loop's `redis.asyncio` client: it needs no read, so
+no worker thread; an update that must read runs on one.
 
 Expiry: every write sets the same absolute expiry (PEXPIREAT now + ttl) on all of the session's keys and
 its sorted-set scores; Redis drops the keys, listings skip and prune the ids.
