@@ -137,6 +137,11 @@ P = ParamSpec("P")
 R = TypeVar("R")
 #: A read queued beside the meta hash: (redis-py command name, key, *arguments).
 Read = tuple[Any, ...]
+#: An observation or detection batch to apply: (make its increments from the session's observation model,
+#: the flat indices given, the voxel coordinates given, the writer check).
+_Batch = tuple[
+    Callable[["ObservationModel"], IncrementBatch], np.ndarray | None, np.ndarray | None, Authorize | None
+]
 #: An update's reads, or a function that makes them (called only when the update reads).
 Reads = Sequence[Read] | Callable[[], Sequence[Read]]
 #: Hashes an update writes: key -> {field: value}.
@@ -803,17 +808,17 @@ class RedisSessionStore:
 
         return change, reads
 
-    def _apply_batch(self, session_id: str, *batch_update: Any) -> UpdateResult:
-        change, reads = self._batch_update(session_id, *batch_update)
+    def _apply_batch(self, session_id: str, batch: _Batch) -> UpdateResult:
+        change, reads = self._batch_update(session_id, *batch)
         return self._update(session_id, change, reads=reads)
 
-    async def _apply_batch_async(self, session_id: str, *batch_update: Any) -> UpdateResult:
+    async def _apply_batch_async(self, session_id: str, batch: _Batch) -> UpdateResult:
         """`_apply_batch` for a caller on an event loop: from the mirror it computes there and commits with
         the loop's client (no worker thread); otherwise, or when another writer came first, it runs the
         reading update on a worker thread."""
         from redis.exceptions import RedisError
 
-        change, reads = self._batch_update(session_id, *batch_update)
+        change, reads = self._batch_update(session_id, *batch)
         mirrored = self._mirror.get(session_id)
         if mirrored is not None:
             try:
@@ -825,10 +830,8 @@ class RedisSessionStore:
             self._mirror.drop(session_id)  # another replica wrote since: read from now on
         return await asyncio.to_thread(_redis_errors(self._update), session_id, change, reads)
 
-    @_redis_errors
-    def apply_observations(
+    def _observations(
         self,
-        session_id: str,
         labels: Sequence[int] | Sequence[str] | np.ndarray,
         *,
         points: np.ndarray | None = None,
@@ -837,27 +840,22 @@ class RedisSessionStore:
         tp: float | None = None,
         fp: float | None = None,
         authorize: Authorize | None = None,
-    ) -> UpdateResult:
-        return self._apply_batch(
-            session_id,
-            lambda observer: observer.observation_batch(
-                labels,
-                points=points,
-                flat_idx=flat_idx,
-                voxels=voxels,
-                tp=tp,
-                fp=fp,
-                max_voxels=self.max_batch_voxels,
-            ),
-            flat_idx,
-            voxels,
-            authorize,
+    ) -> _Batch:
+        """`apply_observations`'s batch (its arguments are those of `SessionStore.apply_observations`)."""
+        make = functools.partial(
+            ObservationModel.observation_batch,
+            labels=labels,
+            points=points,
+            flat_idx=flat_idx,
+            voxels=voxels,
+            tp=tp,
+            fp=fp,
+            max_voxels=self.max_batch_voxels,
         )
+        return make, flat_idx, voxels, authorize
 
-    @_redis_errors
-    def apply_detections(
+    def _detections(
         self,
-        session_id: str,
         p_target: np.ndarray,
         *,
         points: np.ndarray | None = None,
@@ -865,75 +863,34 @@ class RedisSessionStore:
         voxels: np.ndarray | None = None,
         prior: float = 0.5,
         authorize: Authorize | None = None,
-    ) -> UpdateResult:
-        return self._apply_batch(
-            session_id,
-            lambda observer: observer.detection_batch(
-                p_target,
-                points=points,
-                flat_idx=flat_idx,
-                voxels=voxels,
-                prior=prior,
-                max_voxels=self.max_batch_voxels,
-            ),
-            flat_idx,
-            voxels,
-            authorize,
+    ) -> _Batch:
+        """`apply_detections`'s batch (its arguments are those of `SessionStore.apply_detections`)."""
+        make = functools.partial(
+            ObservationModel.detection_batch,
+            p_target=p_target,
+            points=points,
+            flat_idx=flat_idx,
+            voxels=voxels,
+            prior=prior,
+            max_voxels=self.max_batch_voxels,
         )
+        return make, flat_idx, voxels, authorize
 
-    async def apply_observations_async(
-        self,
-        session_id: str,
-        labels: Sequence[int] | Sequence[str] | np.ndarray,
-        *,
-        points: np.ndarray | None = None,
-        flat_idx: np.ndarray | None = None,
-        voxels: np.ndarray | None = None,
-        tp: float | None = None,
-        fp: float | None = None,
-        authorize: Authorize | None = None,
-    ) -> UpdateResult:
-        return await self._apply_batch_async(
-            session_id,
-            lambda observer: observer.observation_batch(
-                labels,
-                points=points,
-                flat_idx=flat_idx,
-                voxels=voxels,
-                tp=tp,
-                fp=fp,
-                max_voxels=self.max_batch_voxels,
-            ),
-            flat_idx,
-            voxels,
-            authorize,
-        )
+    @_redis_errors
+    def apply_observations(self, session_id: str, labels: Any, **kwargs: Any) -> UpdateResult:
+        return self._apply_batch(session_id, self._observations(labels, **kwargs))
+
+    @_redis_errors
+    def apply_detections(self, session_id: str, p_target: np.ndarray, **kwargs: Any) -> UpdateResult:
+        return self._apply_batch(session_id, self._detections(p_target, **kwargs))
+
+    async def apply_observations_async(self, session_id: str, labels: Any, **kwargs: Any) -> UpdateResult:
+        return await self._apply_batch_async(session_id, self._observations(labels, **kwargs))
 
     async def apply_detections_async(
-        self,
-        session_id: str,
-        p_target: np.ndarray,
-        *,
-        points: np.ndarray | None = None,
-        flat_idx: np.ndarray | None = None,
-        voxels: np.ndarray | None = None,
-        prior: float = 0.5,
-        authorize: Authorize | None = None,
+        self, session_id: str, p_target: np.ndarray, **kwargs: Any
     ) -> UpdateResult:
-        return await self._apply_batch_async(
-            session_id,
-            lambda observer: observer.detection_batch(
-                p_target,
-                points=points,
-                flat_idx=flat_idx,
-                voxels=voxels,
-                prior=prior,
-                max_voxels=self.max_batch_voxels,
-            ),
-            flat_idx,
-            voxels,
-            authorize,
-        )
+        return await self._apply_batch_async(session_id, self._detections(p_target, **kwargs))
 
     @_redis_errors
     def read_layers(self, session_id: str) -> BeliefState:
