@@ -831,6 +831,39 @@ def test_an_event_loop_update_with_redis_down_raises_store_unavailable() -> None
         server.close()
 
 
+@pytest.mark.redis
+def test_event_loop_calls_after_a_redis_restart_reconnect_and_apply_each_update_once(tmp_path: Path) -> None:
+    server = RedisServer(shutil.which("redis-server") or "redis-server", appendonly=True)
+    server.start()
+    store = redis_store(server.url)
+    session = make_session()
+    store.create(session)
+    ijk = session.grid.flat_to_ijk(np.arange(8).reshape(-1, 1)[:, 0])
+
+    async def run() -> list[int]:
+        # Several pooled connections on this loop, then Redis restarts under them (its AOF keeps the data).
+        await asyncio.gather(*(store.owner_and_version(session.id) for _ in range(4)))
+        await asyncio.gather(
+            *(store.apply_detections_async(session.id, [0.7], voxels=ijk[i : i + 1]) for i in range(4))
+        )
+        await asyncio.to_thread(server.restart)
+        versions = [(await store.owner_and_version(session.id))[1] for _ in range(4)]
+        for i in range(4, 8):
+            versions.append(
+                (await store.apply_detections_async(session.id, [0.7], voxels=ijk[i : i + 1])).version
+            )
+        return versions
+
+    try:
+        assert asyncio.run(run()) == [4, 4, 4, 4, 5, 6, 7, 8]
+        for i in range(8):
+            session.belief.apply_increments(session.detection_batch([0.7], voxels=ijk[i : i + 1]))
+        assert_same_belief(store.get(session.id), session, exact=False)  # each batch applied once
+    finally:
+        store.close()
+        server.close()
+
+
 def test_an_unreachable_redis_raises_store_unavailable() -> None:
     pytest.importorskip("redis")
     store = open_store(f"redis://127.0.0.1:{free_port()}/0")

@@ -469,13 +469,29 @@ class RedisSessionStore:
         self, session_id: str, change: Change[R], mirrored: _Mirrored
     ) -> tuple[R] | None:
         """`_attempt` from the mirrored state, committed through the running event loop's client."""
+        from redis.exceptions import ConnectionError as RedisConnectionError
+
         writes, result = change(_Snapshot.of(mirrored), [])
         now = self._clock()
         keys, args = self._commit_arguments(session_id, mirrored.stamp, mirrored.static, "", writes, now)
-        outcome = await self._async_client()[1](keys=keys, args=args)
+        try:
+            outcome = await self._async_client()[1](keys=keys, args=args)
+        except RedisConnectionError:
+            # The connection closed, so the reply is lost but not necessarily the commit: a pooled connection
+            # to a Redis that has restarted since fails so on its first use. The commit landed if the stored
+            # state now has the name it gives.
+            outcome = await asyncio.to_thread(_redis_errors(self._outcome), session_id, mirrored.stamp, now)
         return (
             (result,) if self._committed(session_id, outcome, mirrored.stamp, writes, now, mirrored) else None
         )
+
+    def _outcome(self, session_id: str, stamp: Stamp, now: float) -> int:
+        """What a commit from the state `stamp` at time `now` did, read back: as the script answers."""
+        version, updated_at = self._client.hmget(self._key(session_id, "meta"), ["version", "updated_at"])
+        if version is None:
+            return -1
+        landed = int(version) == stamp[0] + 1 and updated_at == repr(now).encode()
+        return stamp[0] + 1 if landed else -2
 
     def _commit_arguments(
         self, session_id: str, stamp: Stamp, static: dict[str, Any], token: str, writes: Writes, now: float
@@ -633,12 +649,15 @@ class RedisSessionStore:
         return self._async[1], self._async[2]
 
     async def owner_and_version(self, session_id: str) -> tuple[str, int]:
+        from redis.exceptions import ConnectionError as RedisConnectionError
         from redis.exceptions import RedisError
 
+        fields = (self._key(session_id, "meta"), ["static", "version"])
         try:
-            static_raw, version = await self._async_client()[0].hmget(
-                self._key(session_id, "meta"), ["static", "version"]
-            )
+            try:
+                static_raw, version = await self._async_client()[0].hmget(*fields)
+            except RedisConnectionError:  # a pooled connection to a Redis that has restarted since: once more
+                static_raw, version = await self._async_client()[0].hmget(*fields)
         except RedisError as exc:
             raise _unavailable(exc) from exc
         if static_raw is None:
