@@ -864,6 +864,22 @@ def test_event_loop_calls_after_a_redis_restart_reconnect_and_apply_each_update_
         server.close()
 
 
+@pytest.mark.redis
+def test_a_commit_whose_reply_was_lost_is_told_landed_only_by_the_name_it_gave(redis_url: str) -> None:
+    clock = FakeClock()
+    store = redis_store(redis_url, clock=clock, ttl_s=None)  # the fake clock's times are long past
+    store.create(make_session("lost-reply"))
+    before = (0, store._client.hget(store._key("lost-reply", "meta"), "updated_at"))
+    clock.now += 1.0
+    store.apply_detections("lost-reply", [0.9], flat_idx=np.array([0]))
+    assert store._outcome("lost-reply", before, clock.now) == 1  # landed: version 1 at that time
+    assert store._outcome("lost-reply", before, clock.now + 1.0) == -2  # another commit made version 1
+    assert store._outcome("lost-reply", (1, b"x"), clock.now) == -2  # not from that state
+    store.delete("lost-reply")
+    assert store._outcome("lost-reply", before, clock.now) == -1
+    store.close()
+
+
 def test_an_unreachable_redis_raises_store_unavailable() -> None:
     pytest.importorskip("redis")
     store = open_store(f"redis://127.0.0.1:{free_port()}/0")
