@@ -880,6 +880,24 @@ def test_a_commit_whose_reply_was_lost_is_told_landed_only_by_the_name_it_gave(r
     store.close()
 
 
+def test_the_mirror_drops_a_session_only_under_the_name_it_was_used_by() -> None:
+    from app.stores.redis_store import _Mirror, _Mirrored
+
+    def entry(version: int) -> Any:
+        layer = np.zeros(4, dtype=np.float32)
+        return _Mirrored((version, b"t"), {}, np.zeros(0, np.int64), 4, b"{}", layer, layer.copy())
+
+    mirror = _Mirror(max_bytes=1 << 20)
+    mirror.put("s", entry(2))  # another thread's commit replaced the entry an update had used (version 1)
+    mirror.drop("s", (1, b"t"))
+    assert mirror.get("s") is not None and mirror.get("s", (2, b"t")) is not None
+    mirror.drop("s", (2, b"t"))
+    assert mirror.get("s") is None
+    mirror.put("s", entry(3))
+    mirror.drop("s")
+    assert mirror.get("s") is None
+
+
 def test_an_unreachable_redis_raises_store_unavailable() -> None:
     pytest.importorskip("redis")
     store = open_store(f"redis://127.0.0.1:{free_port()}/0")

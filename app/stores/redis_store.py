@@ -264,9 +264,12 @@ class _Mirror:
             while self._bytes > self.max_bytes:
                 self._pop(next(iter(self._entries)))
 
-    def drop(self, session_id: str) -> None:
+    def drop(self, session_id: str, stamp: Stamp | None = None) -> None:
+        """Forget the session (only its entry named `stamp`, when given: a newer one stays)."""
         with self._lock:
-            self._pop(session_id)
+            entry = self._entries.get(session_id)
+            if entry is not None and (stamp is None or entry.stamp == stamp):
+                self._pop(session_id)
 
     def _pop(self, session_id: str) -> None:
         entry = self._entries.pop(session_id, None)
@@ -421,8 +424,8 @@ class RedisSessionStore:
             committed = self._attempt(session_id, change, reads, token="", mirrored=mirrored)
             if committed is not None:
                 return committed[0]
-            if mirrored is not None:  # another replica wrote since: read from now on
-                self._mirror.drop(session_id)
+            if mirrored is not None:  # another writer came first: read from now on
+                self._mirror.drop(session_id, mirrored.stamp)
                 mirrored = None
         with self._session_lock(session_id) as token:
             for _ in range(_MAX_LOCKED_ATTEMPTS):
@@ -846,7 +849,7 @@ class RedisSessionStore:
                 raise _unavailable(exc) from exc
             if committed is not None:
                 return committed[0]
-            self._mirror.drop(session_id)  # another replica wrote since: read from now on
+            self._mirror.drop(session_id, mirrored.stamp)  # another writer came first: read from now on
         return await asyncio.to_thread(_redis_errors(self._update), session_id, change, reads)
 
     def _observations(
