@@ -809,7 +809,11 @@ def test_an_event_loop_update_takes_a_worker_thread_only_when_it_must_read(
     assert not _layer_reads(detect(first, 0.8)) and not threads  # from the mirror made by create
     second.apply_detections(session.id, [0.3], voxels=ijk[:1])  # the first's mirror is now stale
     session.belief.apply_increments(session.detection_batch([0.3], voxels=ijk[:1]))
-    assert _layer_reads(detect(first, 0.6)) and len(threads) == 1  # its commit failed: it read, on a thread
+    commands = detect(first, 0.6)  # its commit failed: it read, on a thread
+    assert _layer_reads(commands) and len(threads) == 1
+    # ... the blocks with the meta hash, in one transaction: the grid was known from the stale mirror
+    verbs = [c.split()[0] for c in commands]
+    assert commands.index(_layer_reads(commands)[0]) < verbs.index("EXEC"), commands
     first.get(session.id)  # a full read mirrors the session again
     assert not _layer_reads(detect(first, 0.7)) and len(threads) == 1
     assert_same_belief(second.get(session.id), session)

@@ -773,17 +773,19 @@ class RedisSessionStore:
         """The change an observation or detection batch makes, and the reads it needs when it reads."""
         vis_key = self._key(session_id, "vis")
         guess = self.block_voxels
+        # A session's grid never changes: the mirror's names it even after the entry goes stale (and is
+        # dropped by the failed commit that sends the update to read).
+        known = self._mirror.get(session_id) if voxels is not None else None
+        shape = tuple(known.static["grid"]["shape"]) if known is not None else None
 
         @functools.cache
         def prefetch() -> tuple[str, ...]:
             """The blocks (as sized for new sessions) that a read attempt fetches with the meta hash: those
-            of the flat indices, or of the voxel coordinates on the grid the mirror knows (a session's grid
-            never changes). Computed only if an attempt reads: an update from the mirror reads nothing."""
+            of the flat indices, or of the voxel coordinates on the grid the mirror knew. Computed only if
+            an attempt reads: an update from the mirror reads nothing."""
             idx = np.asarray(flat_idx if flat_idx is not None else [])
-            known = self._mirror.get(session_id) if voxels is not None else None
             ijk = np.asarray(voxels if voxels is not None else [])
-            if known is not None and ijk.ndim == 2 and ijk.shape[1:] == (3,) and ijk.dtype.kind in "iu":
-                shape = tuple(known.static["grid"]["shape"])
+            if shape is not None and ijk.ndim == 2 and ijk.shape[1:] == (3,) and ijk.dtype.kind in "iu":
                 inside = np.all((ijk >= 0) & (ijk < shape), axis=1)
                 idx = np.ravel_multi_index(tuple(ijk[inside].T), shape)
             if not (idx.ndim == 1 and idx.dtype.kind in "iu" and len(idx) > 0 and idx.min() >= 0):
