@@ -137,17 +137,14 @@ P = ParamSpec("P")
 R = TypeVar("R")
 #: A read queued beside the meta hash: (redis-py command name, key, *arguments).
 Read = tuple[Any, ...]
-#: An observation or detection batch to apply: (make its increments from the session's observation model,
-#: the flat indices given, the voxel coordinates given, the writer check).
-_Batch = tuple[
-    Callable[["ObservationModel"], IncrementBatch], np.ndarray | None, np.ndarray | None, Authorize | None
-]
 #: An update's reads, or a function that makes them (called only when the update reads).
 Reads = Sequence[Read] | Callable[[], Sequence[Read]]
 #: Hashes an update writes: key -> {field: value}.
 Writes = dict[str, dict[str, Any]]
 #: change(what the meta hash held, read results) -> (writes, result)
 Change = Callable[["_Snapshot", list[Any]], tuple[Writes, R]]
+#: An observation or detection batch's change, and the reads it needs when it reads.
+BatchUpdate = tuple[Change[UpdateResult], Callable[[], Sequence[Read]]]
 
 
 def _unavailable(exc: Exception) -> StoreUnavailable:
@@ -769,7 +766,7 @@ class RedisSessionStore:
         flat_idx: np.ndarray | None,
         voxels: np.ndarray | None,
         authorize: Authorize | None,
-    ) -> tuple[Change[UpdateResult], Callable[[], Sequence[Read]]]:
+    ) -> BatchUpdate:
         """The change an observation or detection batch makes, and the reads it needs when it reads."""
         vis_key = self._key(session_id, "vis")
         guess = self.block_voxels
@@ -832,17 +829,17 @@ class RedisSessionStore:
 
         return change, reads
 
-    def _apply_batch(self, session_id: str, batch: _Batch) -> UpdateResult:
-        change, reads = self._batch_update(session_id, *batch)
+    def _apply_batch(self, session_id: str, update: BatchUpdate) -> UpdateResult:
+        change, reads = update
         return self._update(session_id, change, reads=reads)
 
-    async def _apply_batch_async(self, session_id: str, batch: _Batch) -> UpdateResult:
+    async def _apply_batch_async(self, session_id: str, update: BatchUpdate) -> UpdateResult:
         """`_apply_batch` for a caller on an event loop: from the mirror it computes there and commits with
         the loop's client (no worker thread); otherwise, or when another writer came first, it runs the
         reading update on a worker thread."""
         from redis.exceptions import RedisError
 
-        change, reads = self._batch_update(session_id, *batch)
+        change, reads = update
         mirrored = self._mirror.get(session_id)
         if mirrored is not None:
             try:
@@ -856,6 +853,7 @@ class RedisSessionStore:
 
     def _observations(
         self,
+        session_id: str,
         labels: Sequence[int] | Sequence[str] | np.ndarray,
         *,
         points: np.ndarray | None = None,
@@ -864,8 +862,8 @@ class RedisSessionStore:
         tp: float | None = None,
         fp: float | None = None,
         authorize: Authorize | None = None,
-    ) -> _Batch:
-        """`apply_observations`'s batch (its arguments are those of `SessionStore.apply_observations`)."""
+    ) -> BatchUpdate:
+        """`apply_observations`'s update (its arguments are those of `SessionStore.apply_observations`)."""
         make = functools.partial(
             ObservationModel.observation_batch,
             labels=labels,
@@ -876,10 +874,11 @@ class RedisSessionStore:
             fp=fp,
             max_voxels=self.max_batch_voxels,
         )
-        return make, flat_idx, voxels, authorize
+        return self._batch_update(session_id, make, flat_idx, voxels, authorize)
 
     def _detections(
         self,
+        session_id: str,
         p_target: np.ndarray,
         *,
         points: np.ndarray | None = None,
@@ -887,8 +886,8 @@ class RedisSessionStore:
         voxels: np.ndarray | None = None,
         prior: float = 0.5,
         authorize: Authorize | None = None,
-    ) -> _Batch:
-        """`apply_detections`'s batch (its arguments are those of `SessionStore.apply_detections`)."""
+    ) -> BatchUpdate:
+        """`apply_detections`'s update (its arguments are those of `SessionStore.apply_detections`)."""
         make = functools.partial(
             ObservationModel.detection_batch,
             p_target=p_target,
@@ -898,23 +897,23 @@ class RedisSessionStore:
             prior=prior,
             max_voxels=self.max_batch_voxels,
         )
-        return make, flat_idx, voxels, authorize
+        return self._batch_update(session_id, make, flat_idx, voxels, authorize)
 
     @_redis_errors
     def apply_observations(self, session_id: str, labels: Any, **kwargs: Any) -> UpdateResult:
-        return self._apply_batch(session_id, self._observations(labels, **kwargs))
+        return self._apply_batch(session_id, self._observations(session_id, labels, **kwargs))
 
     @_redis_errors
     def apply_detections(self, session_id: str, p_target: np.ndarray, **kwargs: Any) -> UpdateResult:
-        return self._apply_batch(session_id, self._detections(p_target, **kwargs))
+        return self._apply_batch(session_id, self._detections(session_id, p_target, **kwargs))
 
     async def apply_observations_async(self, session_id: str, labels: Any, **kwargs: Any) -> UpdateResult:
-        return await self._apply_batch_async(session_id, self._observations(labels, **kwargs))
+        return await self._apply_batch_async(session_id, self._observations(session_id, labels, **kwargs))
 
     async def apply_detections_async(
         self, session_id: str, p_target: np.ndarray, **kwargs: Any
     ) -> UpdateResult:
-        return await self._apply_batch_async(session_id, self._detections(p_target, **kwargs))
+        return await self._apply_batch_async(session_id, self._detections(session_id, p_target, **kwargs))
 
     @_redis_errors
     def read_layers(self, session_id: str) -> BeliefState:
