@@ -368,18 +368,15 @@ def batch_update(
     return partial(observations, session_id, batch.labels, tp=batch.tp, fp=batch.fp, **common)
 
 
-async def add_observations(
+async def observation_out(
     store: SessionStore,
     services: Services,
-    principal: Principal,
     session_id: str,
     batch: ObservationBatch,
+    result: UpdateResult,
     with_summary: bool,
-    on_loop: bool,
 ) -> ObservationOut:
-    """Fuse the batch, on the event loop (`on_loop`, small batches) or a worker thread."""
-    update = batch_update(store, principal, session_id, batch, on_loop)
-    result: UpdateResult = await update() if on_loop else await services.run(update)
+    """The answer to a fused batch: with the posterior summary, or with it made ahead in the background."""
     cache = services.summaries
     belief = None
     if with_summary:
@@ -426,12 +423,17 @@ async def post_observations(
         msg = f"unsupported content type {content_type!r}: send application/json or application/msgpack"
         raise UnsupportedMediaType(msg, field="content-type")
 
-    on_loop = decode is decode_msgpack_batch and len(raw) <= INLINE_BATCH_BYTES
-    if on_loop:
+    if decode is decode_msgpack_batch and len(raw) <= INLINE_BATCH_BYTES:
         batch = decode(raw, settings.max_batch_voxels)
+        result = await batch_update(store, principal, session_id, batch, on_loop=True)()
     else:
-        batch = await services.run(decode, raw, settings.max_batch_voxels)
-    return await add_observations(store, services, principal, session_id, batch, summary, on_loop)
+        # One trip to a worker thread, not two.
+        def decode_and_fuse() -> tuple[ObservationBatch, UpdateResult]:
+            batch = decode(raw, settings.max_batch_voxels)
+            return batch, batch_update(store, principal, session_id, batch, on_loop=False)()
+
+        batch, result = await services.run(decode_and_fuse)
+    return await observation_out(store, services, session_id, batch, result, summary)
 
 
 def belief_grid(store: SessionStore, info: SessionInfo, layers: bool) -> tuple[bytes, int]:
