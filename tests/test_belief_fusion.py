@@ -11,7 +11,7 @@ from app.belief import fusion
 from app.belief.grid import VoxelGrid
 from app.belief.session import BeliefState, IncrementBatch, SensorModel, label_key, new_session
 from app.errors import InvalidInput, LimitExceeded
-from app.grounding.mixture import Gaussian, GaussianMixture
+from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox
 from app.scene_graph.model import SceneGraph
 
 GRID = VoxelGrid(origin=(0.1, -0.2, 0.3), shape=(4, 3, 2), voxel_size=0.5)
@@ -327,3 +327,35 @@ def test_vision_moves_mass_towards_a_seen_target_and_away_from_seen_other_things
     unobserved = np.setdiff1d(np.arange(session.grid.n_voxels), [seen_target, seen_other])
     ratio = after[unobserved] / before[unobserved]
     np.testing.assert_allclose(ratio, ratio[0], rtol=1e-5)  # unobserved voxels keep their relative odds
+
+
+def test_language_likelihood_of_a_mixture_with_uniform_boxes_equals_its_logpdf() -> None:
+    grid = VoxelGrid(origin=(-1.0, -0.5, 0.0), shape=(23, 17, 9), voxel_size=0.1)
+    rng = np.random.default_rng(4)
+    gaussians = []
+    for _ in range(3):
+        a = rng.normal(size=(3, 3)) * 0.3
+        gaussians.append(Gaussian(rng.normal(size=3) * 0.5, a @ a.T + 0.01 * np.eye(3)))
+    boxes = [
+        UniformBox(np.array([-1.2, -0.6, -0.1]), np.array([1.4, 1.3, 1.0])),
+        UniformBox.around(np.array([0.0, 0.0, 0.2]), np.array([0.3, 0.2, 0.5])),
+    ]
+    mixture = GaussianMixture.from_components(
+        [0.5, 0.2, 0.1], gaussians, boxes=boxes, box_weights=[0.15, 0.05]
+    )
+    expected = mixture.logpdf(grid.centers()) + np.log(grid.voxel_volume)
+    got = fusion.language_log_likelihood(grid, mixture, block_voxels=500)
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9)
+
+
+def test_a_box_only_mixture_gives_log_zero_outside_as_a_clampable_number() -> None:
+    grid = VoxelGrid(origin=(0.0, 0.0, 0.0), shape=(10, 4, 3), voxel_size=0.1)
+    box = UniformBox(np.array([0.0, 0.0, 0.0]), np.array([0.5, 0.4, 0.3]))
+    mixture = GaussianMixture.from_components([], [], boxes=[box], box_weights=[1.0])
+    got = fusion.language_log_likelihood(grid, mixture)
+    inside = box.contains(grid.centers())
+    np.testing.assert_allclose(got[inside], np.log(grid.voxel_volume / box.volume))
+    assert np.all(got[~inside] < -1e20)
+    lang = np.zeros(grid.n_voxels, dtype=fusion.LAYER_DTYPE)
+    fusion.apply_language(lang, got, span=25.0)
+    assert np.all(lang[inside] == 0.0) and np.all(lang[~inside] == -25.0)

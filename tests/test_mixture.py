@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from app.grounding.mixture import Gaussian, GaussianMixture, project_to_pd
+from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, project_to_pd
 
 
 def test_mixture_logpdf_matches_scipy_sum_of_weighted_densities() -> None:
@@ -50,3 +50,32 @@ def test_project_to_pd_keeps_a_valid_covariance() -> None:
 def test_invalid_weights_are_rejected(weights: list[float]) -> None:
     with pytest.raises(ValueError, match="weights"):
         GaussianMixture.from_components(weights, [Gaussian(np.zeros(3), np.eye(3))] * 2)
+
+
+def test_uniform_boxes_enter_the_density_the_moments_and_the_draws() -> None:
+    box = UniformBox(np.array([0.0, 0.0, 0.0]), np.array([2.0, 1.0, 0.5]))
+    gaussian = Gaussian(np.array([5.0, 0.0, 0.0]), np.eye(3) * 0.01)
+    mix = GaussianMixture.from_components([3.0], [gaussian], boxes=[box], box_weights=[1.0])
+    np.testing.assert_allclose([mix.gaussian_mass, mix.box_weights[0]], [0.75, 0.25])
+    inside, outside = np.array([[1.0, 0.5, 0.25]]), np.array([[3.0, 0.5, 0.25]])
+    np.testing.assert_allclose(
+        mix.logpdf(inside), np.log(0.25 / box.volume + 0.75 * np.exp(gaussian.logpdf(inside))), rtol=1e-12
+    )
+    np.testing.assert_allclose(mix.logpdf(outside), np.log(0.75) + gaussian.logpdf(outside), rtol=1e-12)
+    draws = mix.sample(200_000, np.random.default_rng(0))
+    np.testing.assert_allclose(draws.mean(axis=0), mix.mean(), atol=0.01)
+    np.testing.assert_allclose(np.cov(draws.T), mix.covariance(), atol=0.02)
+
+
+def test_a_background_keeps_the_density_above_its_share_of_the_uniform_everywhere_in_the_box() -> None:
+    box = UniformBox.around(np.array([0.0, 0.0, 0.0]), np.array([4.0, 3.0, 0.0]))
+    assert box.size[2] == 0.1  # a flat extent is grown to the minimum side
+    sharp = GaussianMixture.from_components([1.0], [Gaussian(np.ones(3), np.eye(3) * 1e-4)])
+    served = sharp.with_background(0.02, box)
+    corners = np.array(
+        [[x, y, z] for x in box.low[:1] for y in box.high[1:2] for z in (box.low[2], box.high[2])]
+    )
+    assert np.all(served.logpdf(corners) >= np.log(0.02 / box.volume) - 1e-12)
+    np.testing.assert_allclose(served.weights.sum() + served.box_weights.sum(), 1.0)
+    with pytest.raises(ValueError, match="background"):
+        sharp.with_background(1.0, box)

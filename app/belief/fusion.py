@@ -18,7 +18,10 @@ Language layer. Each utterance L_j contributes the language sensor's Gaussian mi
 voxel centre c_i, times the voxel volume V (so p V approximates the probability mass the utterance puts
 in voxel i):
 
-    lang_i  +=  log( p_j(c_i) V ),   p_j(x) = sum_h w_h N(x; mu_h, Sigma_h).                         (3)
+    lang_i  +=  log( p_j(c_i) V ),   p_j(x) = sum_h w_h N(x; mu_h, Sigma_h) + sum_b v_b U(x; box_b).  (3)
+
+The uniform boxes are the sensor's broad terms (`app.grounding.mixture`): exactly the density the
+sensor serves, so the belief's update is the served mixture's log-likelihood voxel for voxel.
 
 Vision layer. The robot labels voxel i with y (ray-cast semantic labels, the reference's y_{i,tau}). With
 the sensor model tp = P(y = target | t = i) and fp = P(y = target | t != i), the likelihood of all labels
@@ -80,6 +83,9 @@ LANG_LOG_SPAN = 25.0
 DETECTOR_EPS = 1e-6
 #: Voxels evaluated together by `language_log_likelihood` (bounds its temporaries to a few MB).
 LANGUAGE_BLOCK_VOXELS = 1 << 16
+#: The "energy" (minus the log-term) of a uniform box at a voxel outside it: log 0 as a finite number, so
+#: that sums and differences of energies stay free of inf - inf.
+_OUTSIDE = 1e30
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -118,27 +124,40 @@ def language_log_likelihood(
     Equal to `mixture.logpdf(grid.centers()) + log V`, computed slab by slab along x without building the
     (N, 3) centre array: with Sigma_h = L_h L_h^T and A_h = L_h^-1 (lower triangular), z = A_h (c - mu_h)
     has z_0 depending on x only, z_1 on (x, y) and only z_2 on all three, so the Mahalanobis term costs
-    three full-size operations per component; the log-sum-exp over components is skipped for K = 1.
+    three full-size operations per component; the log-sum-exp over components is skipped for a single
+    term. A uniform box b adds v_b / vol_b on the voxel centres inside it (a separable x, y, z test) and
+    nothing elsewhere; a voxel no term reaches gets a finite stand-in for log 0 (`_OUTSIDE`), which the
+    language layer's span clamps.
     """
     nx, ny, nz = grid.shape
     xs, ys, zs = (grid.axis_centers(a) for a in range(3))
     keep = mixture.weights > 0
     weights, means, covs = mixture.weights[keep], mixture.means[keep], mixture.covariances[keep]
-    chol = np.linalg.cholesky(covs)  # (K, 3, 3)
-    inv_chol = np.linalg.inv(chol)  # (K, 3, 3), lower triangular
+    box_keep = mixture.box_weights > 0
+    box_weights = mixture.box_weights[box_keep]
+    lows, highs = mixture.box_lows[box_keep], mixture.box_highs[box_keep]
+    log_voxel = math.log(grid.voxel_volume)
+    chol = np.linalg.cholesky(covs) if len(weights) else np.zeros((0, 3, 3))  # (K, 3, 3)
+    inv_chol = np.linalg.inv(chol) if len(weights) else chol  # (K, 3, 3), lower triangular
     log_norm = (
         np.log(weights)
         - np.sum(np.log(np.diagonal(chol, axis1=1, axis2=2)), axis=1)
         - 1.5 * _LOG_2PI
-        + math.log(grid.voxel_volume)
+        + log_voxel
     )  # (K,): log w_h - 1/2 log|Sigma_h| - 3/2 log 2pi + log V
+    box_log = np.log(box_weights) - np.log(np.prod(highs - lows, axis=1)) + log_voxel  # (B,)
+    inside = [
+        [(axis >= lows[b, a]) & (axis <= highs[b, a]) for a, axis in enumerate((xs, ys, zs))]
+        for b in range(len(box_weights))
+    ]
     # With B_h = A_h / sqrt(2), the "energy" e_h = |B_h (c - mu_h)|^2 - log_norm_h is -(log-term of h).
     scaled = inv_chol / math.sqrt(2.0)
+    n_terms = len(weights) + len(box_weights)
     out = np.empty(grid.n_voxels)
     slab = max(1, block_voxels // (ny * nz))
     for start in range(0, nx, slab):
         stop = min(nx, start + slab)
-        energy = np.empty((len(weights), stop - start, ny, nz))  # (K, bx, ny, nz)
+        energy = np.empty((n_terms, stop - start, ny, nz))  # (K + B, bx, ny, nz)
         for h, (b, mu) in enumerate(zip(scaled, means, strict=True)):
             dx = (xs[start:stop] - mu[0])[:, None, None]  # (bx, 1, 1)
             dy = (ys - mu[1])[None, :, None]  # (1, ny, 1)
@@ -149,8 +168,11 @@ def language_log_likelihood(
             np.add(b[2, 0] * dx + b[2, 1] * dy, b[2, 2] * dz, out=e)  # z2, (bx, ny, nz)
             np.square(e, out=e)
             e += z0 * z0 + z1 * z1 - log_norm[h]
+        for j, (in_x, in_y, in_z) in enumerate(inside):
+            mask = in_x[start:stop, None, None] & in_y[None, :, None] & in_z[None, None, :]  # (bx, ny, nz)
+            energy[len(weights) + j] = np.where(mask, -box_log[j], _OUTSIDE)
         block = out[start * ny * nz : stop * ny * nz].reshape(stop - start, ny, nz)
-        if len(weights) == 1:
+        if n_terms == 1:
             np.negative(energy[0], out=block)
             continue
         # log sum_h exp(-e_h) = -e_min + log sum_h exp(e_min - e_h)

@@ -213,10 +213,17 @@ def language_log_likelihood(grid: VoxelGrid, mixture: GaussianMixture) -> np.nda
     if means.ndim != 2 or means.shape[1:] != (3,) or covs.shape != (len(means), 3, 3):
         msg = f"mixture needs (K, 3) means and (K, 3, 3) covariances, got {means.shape} and {covs.shape}"
         raise InvalidInput(msg, "mixture")
-    if not (
-        np.all(np.isfinite(means)) and np.all(np.isfinite(covs)) and np.all(np.isfinite(mixture.weights))
-    ):
+    lows, highs = np.asarray(mixture.box_lows), np.asarray(mixture.box_highs)
+    n_boxes = len(mixture.box_weights)
+    if lows.shape != (n_boxes, 3) or highs.shape != (n_boxes, 3):
+        msg = f"mixture needs (B, 3) box corners, got {lows.shape} and {highs.shape}"
+        raise InvalidInput(msg, "mixture")
+    parameters = (means, covs, mixture.weights, mixture.box_weights, lows, highs)
+    if not all(np.all(np.isfinite(p)) for p in parameters):
         msg = "mixture parameters must be finite"
+        raise InvalidInput(msg, "mixture")
+    if np.any(highs <= lows):
+        msg = "mixture boxes need high > low on every axis"
         raise InvalidInput(msg, "mixture")
     try:
         return fusion.language_log_likelihood(grid, mixture)

@@ -1,18 +1,27 @@
-"""Gaussian mixtures over the target's 3-D position: densities and covariance repair.
+"""Mixtures over the target's 3-D position: Gaussians plus uniform boxes, densities and covariance repair.
 
-The language sensor's output is p(x | L, map) = sum_h w_h N(x; mu_h, Sigma_h)  (the reference's
-language-mixture equation), with sum_h w_h = 1 and every Sigma_h symmetric positive definite.
+The language sensor's output is the reference's language mixture with a broad term added,
+
+    p(x | L, map) = sum_h w_h N(x; mu_h, Sigma_h) + sum_b v_b U(x; box_b),   sum_h w_h + sum_b v_b = 1,
+
+every Sigma_h symmetric positive definite and U(x; box) = 1[x in box] / vol(box) the uniform density over
+an axis-aligned box. The uniform terms carry "I may have misunderstood" and broad priors (a region, the
+whole map) exactly: a density that keeps v_b U(x; map box) is never below v_b / vol(map box) inside the map,
+which a Gaussian stand-in for the uniform cannot promise at the box's corners.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 
 #: Smallest eigenvalue (m^2) any covariance leaves the service with: a 1 cm standard deviation.
 MIN_EIGENVALUE_M2 = 1e-4
+#: Smallest side (m) of a uniform box: a flat or empty extent is grown to this about its centre.
+MIN_BOX_SIDE = 0.1
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -54,12 +63,64 @@ class Gaussian:
 
 
 @dataclass(frozen=True)
+class UniformBox:
+    """U(low, high): the uniform density over an axis-aligned box (metres), 1 / vol inside, 0 outside."""
+
+    low: np.ndarray  # (3,)
+    high: np.ndarray  # (3,)
+
+    @classmethod
+    def around(cls, low: np.ndarray, high: np.ndarray, min_side: float = MIN_BOX_SIDE) -> UniformBox:
+        """The box [low, high] with every side grown to at least `min_side` about its centre."""
+        lo, hi = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+        centre, half = 0.5 * (lo + hi), np.maximum(0.5 * (hi - lo), 0.5 * min_side)
+        return cls(centre - half, centre + half)
+
+    @property
+    def size(self) -> np.ndarray:
+        return self.high - self.low  # (3,)
+
+    @property
+    def volume(self) -> float:
+        return float(np.prod(self.size))
+
+    @property
+    def center(self) -> np.ndarray:
+        return 0.5 * (self.low + self.high)  # (3,)
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """diag(w^2 / 12), the covariance of a uniform over sides w."""
+        return np.diag(self.size**2 / 12.0)  # (3, 3)
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Whether each row lies in the closed box, (N,)."""
+        pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
+        return np.all((pts >= self.low) & (pts <= self.high), axis=1)
+
+    def logpdf(self, points: np.ndarray) -> np.ndarray:
+        """-log vol inside the box, -inf outside, (N,)."""
+        return np.where(self.contains(points), -math.log(self.volume), -np.inf)
+
+
+def _empty(*shape: int) -> np.ndarray:
+    return np.zeros((0, *shape), dtype=np.float64)
+
+
+@dataclass(frozen=True)
 class GaussianMixture:
-    """sum_k w_k N(mu_k, Sigma_k) with weights summing to one."""
+    """sum_k w_k N(mu_k, Sigma_k) + sum_b v_b U(box_b), with all weights together summing to one.
+
+    Without boxes (`box_weights` empty) it is the plain Gaussian mixture; a mixture may also hold boxes only
+    (a broad prior). `weights` are the Gaussians' and `box_weights` the boxes' shares of the mass.
+    """
 
     weights: np.ndarray  # (K,)
     means: np.ndarray  # (K, 3)
     covariances: np.ndarray  # (K, 3, 3)
+    box_weights: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (B,)
+    box_lows: np.ndarray = field(default_factory=lambda: _empty(3))  # (B, 3)
+    box_highs: np.ndarray = field(default_factory=lambda: _empty(3))  # (B, 3)
 
     @classmethod
     def from_components(
@@ -67,45 +128,125 @@ class GaussianMixture:
         weights: list[float] | np.ndarray,
         gaussians: list[Gaussian],
         min_eigenvalue: float = MIN_EIGENVALUE_M2,
+        boxes: Sequence[UniformBox] = (),
+        box_weights: Sequence[float] | np.ndarray = (),
     ) -> GaussianMixture:
-        """Normalise the weights and repair every covariance onto the PD cone."""
-        w = np.asarray(weights, dtype=np.float64)
-        if len(gaussians) == 0 or w.shape != (len(gaussians),):
+        """Normalise all weights together and repair every covariance onto the PD cone."""
+        w = np.asarray(weights, dtype=np.float64).reshape(-1)
+        v = np.asarray(box_weights, dtype=np.float64).reshape(-1)
+        if w.shape != (len(gaussians),) or v.shape != (len(boxes),) or len(gaussians) + len(boxes) == 0:
             msg = "a mixture needs one non-negative weight per component and at least one component"
             raise ValueError(msg)
-        if not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
-            msg = f"mixture weights must be finite, non-negative and not all zero, got {w.tolist()}"
+        every = np.concatenate([w, v])
+        if not np.all(np.isfinite(every)) or np.any(every < 0) or every.sum() <= 0:
+            msg = f"mixture weights must be finite, non-negative and not all zero, got {every.tolist()}"
             raise ValueError(msg)
-        means = np.stack([np.asarray(g.mean, dtype=np.float64) for g in gaussians])
-        covs = np.stack([project_to_pd(g.covariance, min_eigenvalue) for g in gaussians])
-        return cls(weights=w / w.sum(), means=means, covariances=covs)
+        for box in boxes:
+            if not (
+                np.all(np.isfinite(box.low)) and np.all(np.isfinite(box.high)) and np.all(box.high > box.low)
+            ):
+                msg = f"a uniform box needs finite corners with high > low, got {box.low} and {box.high}"
+                raise ValueError(msg)
+        total = every.sum()
+        means = (
+            np.stack([np.asarray(g.mean, dtype=np.float64) for g in gaussians]) if gaussians else _empty(3)
+        )
+        covs = (
+            np.stack([project_to_pd(g.covariance, min_eigenvalue) for g in gaussians])
+            if gaussians
+            else _empty(3, 3)
+        )
+        lows = np.stack([np.asarray(b.low, dtype=np.float64) for b in boxes]) if boxes else _empty(3)
+        highs = np.stack([np.asarray(b.high, dtype=np.float64) for b in boxes]) if boxes else _empty(3)
+        return cls(w / total, means, covs, v / total, lows, highs)
 
     @property
     def components(self) -> list[Gaussian]:
         return [Gaussian(m, c) for m, c in zip(self.means, self.covariances, strict=True)]
 
+    @property
+    def boxes(self) -> list[UniformBox]:
+        return [UniformBox(lo, hi) for lo, hi in zip(self.box_lows, self.box_highs, strict=True)]
+
+    @property
+    def gaussian_mass(self) -> float:
+        """The Gaussians' share of the mass, sum_k w_k (one without boxes)."""
+        return float(np.sum(self.weights))
+
+    def with_background(self, weight: float, box: UniformBox) -> GaussianMixture:
+        """(1 - weight) p(x) + weight U(x; box): the same mixture with a broad term added."""
+        if not 0.0 <= weight < 1.0:
+            msg = f"a background weight lies in [0, 1), got {weight}"
+            raise ValueError(msg)
+        keep = 1.0 - weight
+        return GaussianMixture(
+            self.weights * keep,
+            self.means,
+            self.covariances,
+            np.append(self.box_weights * keep, weight),
+            np.concatenate([self.box_lows, box.low[None]]),
+            np.concatenate([self.box_highs, box.high[None]]),
+        )
+
     def component_logpdf(self, points: np.ndarray) -> np.ndarray:
-        """log N(x; mu_k, Sigma_k) for each point and component, shape (N, K)."""
+        """log N(x; mu_k, Sigma_k) for each point and Gaussian, shape (N, K)."""
+        n = len(np.atleast_2d(points))
+        if not len(self.weights):
+            return np.zeros((n, 0))
         return np.stack([g.logpdf(points) for g in self.components], axis=1)
 
+    def box_logpdf(self, points: np.ndarray) -> np.ndarray:
+        """log U(x; box_b) for each point and box, shape (N, B): -log vol inside, -inf outside."""
+        n = len(np.atleast_2d(points))
+        if not len(self.box_weights):
+            return np.zeros((n, 0))
+        return np.stack([b.logpdf(points) for b in self.boxes], axis=1)
+
     def logpdf(self, points: np.ndarray) -> np.ndarray:
-        """log sum_k w_k N(x; mu_k, Sigma_k), computed with log-sum-exp for each row x; shape (N,)."""
+        """log p(x) of the whole mixture, with log-sum-exp over its terms, for each row x; shape (N,)."""
         with np.errstate(divide="ignore"):
-            log_w = np.log(self.weights)  # (K,)
-        terms = self.component_logpdf(points) + log_w  # (N, K)
-        peak = np.max(terms, axis=1, keepdims=True)
-        return (peak + np.log(np.sum(np.exp(terms - peak), axis=1, keepdims=True)))[:, 0]
+            log_w = np.log(np.concatenate([self.weights, self.box_weights]))  # (K + B,)
+        terms = np.concatenate([self.component_logpdf(points), self.box_logpdf(points)], axis=1) + log_w
+        peak = np.max(terms, axis=1, keepdims=True)  # (N, 1)
+        finite = np.where(np.isfinite(peak), peak, 0.0)
+        with np.errstate(divide="ignore"):
+            return (finite + np.log(np.sum(np.exp(terms - finite), axis=1, keepdims=True)))[:, 0]
 
     def mean(self) -> np.ndarray:
-        """E[x] = sum_k w_k mu_k."""
-        return self.weights @ self.means
+        """E[x] = sum_k w_k mu_k + sum_b v_b c_b (c_b the boxes' centres)."""
+        centres = 0.5 * (self.box_lows + self.box_highs)
+        return self.weights @ self.means + self.box_weights @ centres
+
+    def covariance(self) -> np.ndarray:
+        """The moment-matched covariance, E[x x^T] - E[x] E[x]^T over every term, (3, 3)."""
+        centres = 0.5 * (self.box_lows + self.box_highs)  # (B, 3)
+        box_covs = (
+            np.stack([np.diag(s) for s in (self.box_highs - self.box_lows) ** 2 / 12.0])
+            if len(self.box_weights)
+            else _empty(3, 3)
+        )
+        second = np.einsum(
+            "k,kij->ij", self.weights, self.covariances + np.einsum("ki,kj->kij", self.means, self.means)
+        )
+        second += np.einsum(
+            "b,bij->ij", self.box_weights, box_covs + np.einsum("bi,bj->bij", centres, centres)
+        )
+        mu = self.mean()
+        return second - np.outer(mu, mu)
 
     def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """n draws, shape (n, 3)."""
-        counts = rng.multinomial(n, self.weights)
+        every = np.concatenate([self.weights, self.box_weights])
+        counts = rng.multinomial(n, every / every.sum())
+        k = len(self.weights)
         draws = [
-            rng.multivariate_normal(m, c, size=k)
-            for m, c, k in zip(self.means, self.covariances, counts, strict=True)
-            if k
+            rng.multivariate_normal(m, c, size=c_k)
+            for m, c, c_k in zip(self.means, self.covariances, counts[:k], strict=True)
+            if c_k
+        ]
+        draws += [
+            rng.uniform(lo, hi, size=(c_b, 3))
+            for lo, hi, c_b in zip(self.box_lows, self.box_highs, counts[k:], strict=True)
+            if c_b
         ]
         return np.concatenate(draws, axis=0) if draws else np.empty((0, 3))

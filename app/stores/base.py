@@ -174,6 +174,9 @@ def float64_mixture(mixture: GaussianMixture) -> GaussianMixture:
         weights=np.asarray(mixture.weights, dtype=np.float64),
         means=np.asarray(mixture.means, dtype=np.float64),
         covariances=np.asarray(mixture.covariances, dtype=np.float64),
+        box_weights=np.asarray(mixture.box_weights, dtype=np.float64),
+        box_lows=np.asarray(mixture.box_lows, dtype=np.float64),
+        box_highs=np.asarray(mixture.box_highs, dtype=np.float64),
     )
 
 
@@ -192,19 +195,31 @@ def unpack_array(packed: dict[str, Any]) -> np.ndarray:
 
 def pack_mixture(mixture: GaussianMixture) -> dict[str, Any]:
     m = float64_mixture(mixture)
-    return {
+    packed = {
         "weights": pack_array(m.weights),
         "means": pack_array(m.means),
         "covariances": pack_array(m.covariances),
     }
+    if len(m.box_weights):
+        packed |= {
+            "box_weights": pack_array(m.box_weights),
+            "box_lows": pack_array(m.box_lows),
+            "box_highs": pack_array(m.box_highs),
+        }
+    return packed
 
 
 def unpack_mixture(packed: dict[str, Any]) -> GaussianMixture:
-    """The mixture exactly as packed (no re-normalisation), so replaying it gives the same bits."""
+    """The mixture exactly as packed (no re-normalisation), so replaying it gives the same bits; a record
+    written before mixtures had uniform boxes has none."""
+    boxes = {}
+    if "box_weights" in packed:
+        boxes = {key: unpack_array(packed[key]) for key in ("box_weights", "box_lows", "box_highs")}
     return GaussianMixture(
         weights=unpack_array(packed["weights"]),
         means=unpack_array(packed["means"]),
         covariances=unpack_array(packed["covariances"]),
+        **boxes,
     )
 
 
