@@ -95,8 +95,10 @@ class KnownGaussianGrounder:
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "version": self.version, "config": {}, "checksum": None}
 
-    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
-        return [Gaussian(self.means[utterance], COVARIANCE) for _ in hypotheses]
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
+        return [GaussianMixture.of(Gaussian(self.means[utterance], COVARIANCE)) for _ in hypotheses]
 
 
 # --- metric pieces --------------------------------------------------------------------------------
@@ -304,7 +306,9 @@ class MixtureGrounder:
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "version": self.version, "config": {}, "checksum": None}
 
-    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
         raise AssertionError("a mixture-predicting grounder is asked for its mixture, not per hypothesis")
 
     def ground_mixture(self, scene_graph: SceneGraph, utterance: str) -> GaussianMixture:
@@ -333,7 +337,9 @@ def test_a_mixture_predicting_grounder_is_matched_by_the_nearest_component() -> 
 class FlakyGrounder(FixedGrounder):
     name = "flaky"
 
-    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
         if "case 1:" in utterance:
             raise RuntimeError("endpoint hiccup")
         return super().ground(scene_graph, utterance, hypotheses)

@@ -23,7 +23,9 @@ def room() -> SceneGraph:
 
 
 def _one(room: SceneGraph, relation: Relation, *anchors: str) -> tuple[np.ndarray, np.ndarray]:
-    (g,) = GeometricGrounder().ground(room, "", [Hypothesis(tuple(anchors), relation)])
+    ((g,),) = (
+        d.components for d in GeometricGrounder().ground(room, "", [Hypothesis(tuple(anchors), relation)])
+    )
     assert np.allclose(g.covariance, g.covariance.T)
     assert np.linalg.eigvalsh(g.covariance).min() > 0
     return g.mean, g.covariance
@@ -80,13 +82,13 @@ def test_yawed_anchor_rotates_the_footprint() -> None:
             ]
         }
     )
-    (g,) = GeometricGrounder().ground(sg, "", [Hypothesis(("t",), Relation.ON)])
+    ((g,),) = (d.components for d in GeometricGrounder().ground(sg, "", [Hypothesis(("t",), Relation.ON)]))
     assert g.covariance[1, 1] == pytest.approx(4.0 / 12)
     assert g.covariance[0, 0] == pytest.approx(0.25 / 12)
 
 
 def test_fixed_grounder_is_the_anchor_centroid_with_ten_centimetres(room: SceneGraph) -> None:
-    (g,) = FixedGrounder().ground(room, "", [Hypothesis(("table",), Relation.ON)])
+    ((g,),) = (d.components for d in FixedGrounder().ground(room, "", [Hypothesis(("table",), Relation.ON)]))
     np.testing.assert_allclose(g.mean, [0, 0, 0.375])
     np.testing.assert_allclose(g.covariance, np.eye(3) * 0.01)
 

@@ -434,7 +434,7 @@ def test_scaffolded_llm_repairs_covariances(
         Hypothesis(("21",), Relation.ON, 0.4, "r1", "there is a backpack on the coffee table"),
     ]
     grounder = ScaffoldedLLMGrounder(client)
-    first, second = grounder.ground(scene, BACKPACK, hypotheses)
+    first, second = (d.components[0] for d in grounder.ground(scene, BACKPACK, hypotheses))
 
     np.testing.assert_allclose(first.mean, [1.5, 3.2, 0.9])
     np.testing.assert_allclose(first.covariance, expected_repair_of_non_pd_sigma(), atol=1e-12)
@@ -527,6 +527,6 @@ def test_llm_e2e_behind_the_grounder_protocol(
 ) -> None:
     server.script(e2e_reply([0.5, 0.5], [[11.0, 2.4, 0.5], [1.5, 3.2, 0.9]]))
     hypotheses = [Hypothesis(("7",), Relation.ON), Hypothesis(("21",), Relation.ON)]  # dining, coffee table
-    gaussians = LLMEndToEndGrounder(client).ground(scene, BACKPACK, hypotheses)
+    gaussians = [d.components[0] for d in LLMEndToEndGrounder(client).ground(scene, BACKPACK, hypotheses)]
     np.testing.assert_allclose([g.mean for g in gaussians], [[1.5, 3.2, 0.9], [11.0, 2.4, 0.5]])
     assert len(server.requests) == 1  # one call for the whole mixture

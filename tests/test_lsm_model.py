@@ -280,7 +280,7 @@ def test_grounder_returns_one_pd_gaussian_per_hypothesis(tiny_checkpoint, encode
         Hypothesis(anchor_ids=(sofa,), relation=Relation.ON),
         Hypothesis(anchor_ids=(tv_stand,), relation=Relation.NEAR),
     ]
-    gaussians = grounder.ground(case.scene_graph, case.utterance, hypotheses)
+    gaussians = [d.components[0] for d in grounder.ground(case.scene_graph, case.utterance, hypotheses)]
     assert len(gaussians) == 3
     for g in gaussians:
         assert g.mean.shape == (3,) and np.all(np.isfinite(g.mean))
@@ -303,7 +303,7 @@ def test_grounder_applies_calibration_and_matches_the_batched_evaluation_path(
     for case in cases:
         truth = case.hypotheses[0]
         h = Hypothesis(anchor_ids=tuple(truth.anchor_ids), relation=truth.relation)
-        served.append(grounder.ground(case.scene_graph, case.utterance, [h])[0])
+        served.append(grounder.ground(case.scene_graph, case.utterance, [h])[0].components[0])
         samples.append(
             make_sample(case.scene_graph, truth.anchor_ids, truth.relation, case.utterance, model.cfg)
         )
@@ -331,7 +331,7 @@ def test_shipped_model_grounds_every_relation(encoder, cases):
     for case in cases:
         truth = case.hypotheses[0]
         hypothesis = Hypothesis(anchor_ids=tuple(truth.anchor_ids), relation=truth.relation)
-        (g,) = grounder.ground(case.scene_graph, case.utterance, [hypothesis])
+        ((g,),) = (d.components for d in grounder.ground(case.scene_graph, case.utterance, [hypothesis]))
         assert np.all(np.linalg.eigvalsh(g.covariance) > 0)
         anchors = np.array([case.scene_graph.object(i).center for i in truth.anchor_ids])
         assert np.linalg.norm(g.mean - anchors.mean(axis=0)) < 3.0

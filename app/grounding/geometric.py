@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from app.grounding.hypotheses import Hypothesis
-from app.grounding.mixture import Gaussian
+from app.grounding.mixture import Gaussian, GaussianMixture
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, SceneObject
 
@@ -64,9 +64,11 @@ class GeometricGrounder:
         digest = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
         return {"name": self.name, "version": self.version, "config": config, "checksum": f"sha256:{digest}"}
 
-    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
         floor_z = float(scene_graph.bounds()[0][2])
-        return [self.ground_one(scene_graph, h, floor_z) for h in hypotheses]
+        return [GaussianMixture.of(self.ground_one(scene_graph, h, floor_z)) for h in hypotheses]
 
     def ground_one(self, scene_graph: SceneGraph, hypothesis: Hypothesis, floor_z: float) -> Gaussian:
         cfg = self.config
@@ -137,9 +139,11 @@ class FixedGrounder:
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "version": self.version, "config": {"sigma": self.sigma}, "checksum": None}
 
-    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
         out = []
         for h in hypotheses:
             centers = np.array([scene_graph.object(i).center for i in h.anchor_ids], dtype=np.float64)
-            out.append(Gaussian(centers.mean(axis=0), np.eye(3) * self.sigma**2))
+            out.append(GaussianMixture.of(Gaussian(centers.mean(axis=0), np.eye(3) * self.sigma**2)))
         return out

@@ -1,7 +1,8 @@
 """The two factors of the language sensor, as interfaces.
 
 P(target | L, map) = sum_h P(target | h, map) * P(h | L, map): a `HypothesisProposer` gives the second
-factor (weighted hypotheses), a `Grounder` the first (one Gaussian per hypothesis).
+factor (weighted hypotheses), a `Grounder` the first: one density per hypothesis, a small Gaussian mixture
+(one Gaussian for the hand-written grounders, a core and a wider tail for the LSM).
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ from __future__ import annotations
 from typing import Any, Protocol, runtime_checkable
 
 from app.grounding.hypotheses import Hypothesis, Proposal
-from app.grounding.mixture import Gaussian
+from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
 
 
@@ -28,14 +29,14 @@ class HypothesisProposer(Protocol):
 
 @runtime_checkable
 class Grounder(Protocol):
-    """Spatial grounding: one Gaussian over the target's position for each hypothesis."""
+    """Spatial grounding: a density over the target's position for each hypothesis (weights summing to 1)."""
 
     name: str
     version: str
 
     def ground(
         self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
-    ) -> list[Gaussian]: ...
+    ) -> list[GaussianMixture]: ...
 
     def describe(self) -> dict[str, Any]:
         """Name, version, config and weights checksum, for /v1/models and model cards."""

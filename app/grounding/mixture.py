@@ -160,6 +160,30 @@ class GaussianMixture:
         highs = np.stack([np.asarray(b.high, dtype=np.float64) for b in boxes]) if boxes else _empty(3)
         return cls(w / total, means, covs, v / total, lows, highs)
 
+    @classmethod
+    def of(cls, gaussian: Gaussian, min_eigenvalue: float = MIN_EIGENVALUE_M2) -> GaussianMixture:
+        """The one-component mixture N(mu, Sigma)."""
+        return cls.from_components([1.0], [gaussian], min_eigenvalue)
+
+    @classmethod
+    def combine(
+        cls, weights: Sequence[float] | np.ndarray, parts: Sequence[GaussianMixture]
+    ) -> GaussianMixture:
+        """sum_h w_h p_h(x) with the w_h normalised: the mixture of mixtures, flattened (no PD repair)."""
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != (len(parts),) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+            msg = f"mixture weights must be finite, non-negative and not all zero, got {w.tolist()}"
+            raise ValueError(msg)
+        w = w / w.sum()
+        return cls(
+            np.concatenate([wh * p.weights for wh, p in zip(w, parts, strict=True)]),
+            np.concatenate([p.means for p in parts]),
+            np.concatenate([p.covariances for p in parts]),
+            np.concatenate([wh * p.box_weights for wh, p in zip(w, parts, strict=True)]),
+            np.concatenate([p.box_lows for p in parts]),
+            np.concatenate([p.box_highs for p in parts]),
+        )
+
     @property
     def components(self) -> list[Gaussian]:
         return [Gaussian(m, c) for m, c in zip(self.means, self.covariances, strict=True)]

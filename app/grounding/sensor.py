@@ -1,8 +1,8 @@
-"""The language sensor: P(x | L, map) = sum_h P(x | h, map) P(h | L, map) as one Gaussian mixture.
+"""The language sensor: P(x | L, map) = sum_h P(x | h, map) P(h | L, map) as one mixture.
 
-A `HypothesisProposer` gives the weighted hypotheses, a `Grounder` one Gaussian per hypothesis. When no
-anchor matches, the sensor says so (`grounded = False`) and returns a broad prior over the mentioned
-region(s) or the whole map instead of inventing an anchor.
+A `HypothesisProposer` gives the weighted hypotheses, a `Grounder` one density per hypothesis (a small
+Gaussian mixture). When no anchor matches, the sensor says so (`grounded = False`) and returns a broad prior
+over the mentioned region(s) or the whole map instead of inventing an anchor.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ class Grounding:
     hypotheses: tuple[Hypothesis, ...]  # weights sum to 1; empty when not grounded
     mixture: GaussianMixture
     timings_ms: dict[str, float] = field(default_factory=dict)
+    densities: tuple[GaussianMixture, ...] = ()  # P(x | h, map) of each hypothesis, in order
 
     @property
     def grounded(self) -> bool:
@@ -62,13 +63,14 @@ class LanguageSensor:
             mixture = broad_prior(scene_graph, proposal.parse)
             return Grounding(proposal, (), mixture, timings)
         with self._stage("grounder", timings):
-            gaussians = self.grounder.ground(scene_graph, utterance, list(proposal.hypotheses))
-        weights = [h.weight for h in proposal.hypotheses]
-        mixture = GaussianMixture.from_components(weights, gaussians)
+            densities = tuple(self.grounder.ground(scene_graph, utterance, list(proposal.hypotheses)))
+        weights = np.array([h.weight for h in proposal.hypotheses], dtype=np.float64)
+        mixture = GaussianMixture.combine(weights, densities)
         normalised = tuple(
-            replace(h, weight=float(w)) for h, w in zip(proposal.hypotheses, mixture.weights, strict=True)
+            replace(h, weight=float(w))
+            for h, w in zip(proposal.hypotheses, weights / weights.sum(), strict=True)
         )
-        return Grounding(proposal, normalised, mixture, timings)
+        return Grounding(proposal, normalised, mixture, timings, densities)
 
     def _stage(self, name: str, timings: dict[str, float]) -> _StageTimer:
         return _StageTimer(name, timings, self.observer)

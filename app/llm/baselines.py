@@ -113,9 +113,16 @@ class ScaffoldedLLMGrounder:
         checksum = _prompt_checksum(prompts.SCAFFOLDED_SYSTEM_PROMPT, prompts.SCAFFOLDED_USER_TEMPLATE)
         return {"name": self.name, "version": self.version, "config": config, "checksum": checksum}
 
-    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
         return [
-            read_gaussian(self.client.complete_json(prompts.scaffolded_messages(scene_graph, utterance, h)))
+            GaussianMixture.of(
+                read_gaussian(
+                    self.client.complete_json(prompts.scaffolded_messages(scene_graph, utterance, h))
+                ),
+                BASELINE_MIN_EIGENVALUE_M2,
+            )
             for h in hypotheses
         ]
 
@@ -148,7 +155,9 @@ class LLMEndToEndGrounder:
         messages = prompts.e2e_messages(scene_graph, utterance, self.max_components)
         return read_mixture(self.client.complete_json(messages), self.max_components)
 
-    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
         if not hypotheses:
             return []
         mixture = self.ground_mixture(scene_graph, utterance)
@@ -156,5 +165,5 @@ class LLMEndToEndGrounder:
         for h in hypotheses:
             centroid = np.mean([scene_graph.object(i).center for i in h.anchor_ids], axis=0)  # (3,)
             nearest = int(np.argmin(np.linalg.norm(mixture.means - centroid, axis=1)))
-            out.append(mixture.components[nearest])
+            out.append(GaussianMixture.of(mixture.components[nearest], BASELINE_MIN_EIGENVALUE_M2))
         return out

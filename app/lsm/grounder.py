@@ -17,7 +17,7 @@ import torch
 
 from app.errors import ModelUnavailable
 from app.grounding.hypotheses import Hypothesis
-from app.grounding.mixture import Gaussian, project_to_pd
+from app.grounding.mixture import Gaussian, GaussianMixture, project_to_pd
 from app.grounding.relations import Relation
 from app.lsm.features import PackedSamples, SceneArrays, make_sample
 from app.lsm.inference import LSMInference
@@ -76,7 +76,9 @@ class LSMGrounder:
             raise ModelUnavailable(msg)
         return cls(model, meta, encoder, file_sha256(model_dir / WEIGHTS_NAME))
 
-    def ground(self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]) -> list[Gaussian]:
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
         if not hypotheses:
             return []
         cfg = self.model.cfg
@@ -87,7 +89,7 @@ class LSMGrounder:
         covs = out.covariance.double().numpy()  # (H, 3, 3)
         scales = np.array([calibration_scale(self.calibration, Relation(h.relation)) for h in hypotheses])
         covs = project_to_pd(covs * scales[:, None, None])  # (H, 3, 3)
-        return [Gaussian(mean=m, covariance=c) for m, c in zip(means, covs, strict=True)]
+        return [GaussianMixture.of(Gaussian(mean=m, covariance=c)) for m, c in zip(means, covs, strict=True)]
 
     def describe(self) -> dict[str, Any]:
         return {

@@ -203,9 +203,9 @@ def ground_cases(grounder: Grounder, cases: list[GroundingCase]) -> tuple[np.nda
             raise ValueError(msg)
         truth = case.hypotheses[0]
         hypothesis = Hypothesis(anchor_ids=tuple(truth.anchor_ids), relation=truth.relation)
-        gaussian = grounder.ground(case.scene_graph, case.utterance, [hypothesis])[0]
-        means.append(gaussian.mean)
-        covs.append(gaussian.covariance)
+        density = grounder.ground(case.scene_graph, case.utterance, [hypothesis])[0]
+        means.append(density.mean())
+        covs.append(density.covariance())
     return np.asarray(means, dtype=np.float64), np.asarray(covs, dtype=np.float64)
 
 
