@@ -9,10 +9,11 @@ import pytest
 
 from app.belief import fusion
 from app.belief.grid import VoxelGrid
-from app.belief.session import BeliefState, IncrementBatch, SensorModel, label_key, new_session
+from app.belief.session import BeliefState, IncrementBatch, SensorModel, new_session
 from app.errors import InvalidInput, LimitExceeded
 from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox
 from app.scene_graph.model import SceneGraph
+from app.vocabulary import class_key
 
 GRID = VoxelGrid(origin=(0.1, -0.2, 0.3), shape=(4, 3, 2), voxel_size=0.5)
 
@@ -272,8 +273,8 @@ ROOM = scene(
         ("bus", "bu", False),
     ],
 )
-def test_label_keys(a: str, b: str, same: bool) -> None:
-    assert (label_key(a) == label_key(b)) is same
+def test_class_keys(a: str, b: str, same: bool) -> None:
+    assert (class_key(a) == class_key(b)) is same
 
 
 def test_labels_by_id_and_by_name() -> None:

@@ -14,7 +14,6 @@ import pytest
 
 from app.api.launcher import running_service
 from app.belief.fusion import VIS_LOG_MAX, VIS_LOG_MIN
-from app.belief.session import label_key
 from app.cli import main as vlmap_main
 from app.client import VLMapClient
 from app.sim.metrics import (
@@ -45,6 +44,7 @@ from app.sim.runner import (
     run_method,
     run_simulation,
 )
+from app.vocabulary import class_key
 from tests.fake_llm_server import FakeLLMServer, Reply
 
 CASES = Path(__file__).parent / "resources" / "sim" / "cases_scene0000_00.jsonl"
@@ -245,7 +245,7 @@ def test_methods_are_checked() -> None:
 def reference_vision_masses(prepared: PreparedEpisode, config: SimConfig) -> list[float]:
     """Target mass at each checkpoint of a vision-only belief, fused voxel by voxel in plain Python."""
     tp, fp = config.noise.tp, config.noise.fp
-    target_key = label_key(prepared.episode.target.label)
+    target_key = class_key(prepared.episode.target.label)
     vis = np.zeros(prepared.grid.n_voxels)
     checkpoints = set(config.checkpoints)
     masses = []
@@ -254,7 +254,7 @@ def reference_vision_masses(prepared: PreparedEpisode, config: SimConfig) -> lis
             frame = prepared.frames[step - 1]
             flat = prepared.grid.ijk_to_flat(frame.voxels.astype(np.int64))
             for index, label_id in zip(flat, frame.label_ids, strict=True):
-                says_target = label_key(prepared.label_map[int(label_id)]) == target_key
+                says_target = class_key(prepared.label_map[int(label_id)]) == target_key
                 vis[index] += math.log(tp / fp) if says_target else math.log((1 - tp) / (1 - fp))
                 vis[index] = min(max(vis[index], VIS_LOG_MIN), VIS_LOG_MAX)
         if step in checkpoints:

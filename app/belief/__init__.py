@@ -14,7 +14,6 @@ from app.belief.session import (
     Session,
     SessionInfo,
     UpdateResult,
-    label_key,
     new_session,
 )
 from app.belief.summary import PlaceMass, PosteriorSummary, VoxelMass, summarize
@@ -32,7 +31,6 @@ __all__ = [
     "UpdateResult",
     "VoxelGrid",
     "VoxelMass",
-    "label_key",
     "new_session",
     "summarize",
 ]

@@ -6,10 +6,9 @@ grid, the target class, the label map (id -> name) and the default sensor model.
 persist sessions; `Session.observation_batch` / `detection_batch` turn a message into an
 `IncrementBatch` (flat voxel indices + increments) that a store logs and applies.
 
-Label matching: a robot label names the target when both normalise to the same key: CamelCase split,
-lower case, "_", "-", "/" and "." read as spaces, the last word made singular ("boxes" -> "box",
-"shelves" -> "shelf"), a few synonyms folded ("sofa" -> "couch", "rucksack" -> "backpack", ...), and spaces
-dropped ("trash can" == "trashcan").
+Label matching: a robot label names the target when both have the same class key (`app.vocabulary`:
+CamelCase split, lower case, every word singular, synonyms folded, spaces dropped: "TrashCans" ==
+"garbage bin", "sofa" == "couch").
 
 Mapped look-alikes: the scene graph never holds the target (that is why the robot searches), but it may
 hold other objects of the target's class (the other chairs when the target is a chair). A class-level
@@ -29,7 +28,6 @@ store's `set_target_label`) names the class.
 from __future__ import annotations
 
 import math
-import re
 import time
 import uuid
 from collections.abc import Mapping, Sequence
@@ -42,9 +40,9 @@ from app.belief import fusion
 from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_MAX_VOXELS, DEFAULT_VOXEL_SIZE_M, VoxelGrid
 from app.belief.summary import ON_MARGIN_M, PosteriorSummary, cached_place_index, summarize
 from app.errors import Conflict, InvalidInput, LimitExceeded
-from app.grounding.lexical import singular
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
+from app.vocabulary import class_key
 
 #: Default sensor model: placeholders for a decent semantic segmenter; set them from its confusion matrix.
 DEFAULT_TRUE_POSITIVE_RATE = 0.9
@@ -52,56 +50,14 @@ DEFAULT_FALSE_POSITIVE_RATE = 0.05
 #: Voxels one observation batch may carry.
 DEFAULT_MAX_BATCH_VOXELS = 4_000_000
 
-_SYNONYMS = {
-    "sofa": "couch",
-    "settee": "couch",
-    "rucksack": "backpack",
-    "knapsack": "backpack",
-    "fridge": "refrigerator",
-    "tv": "television",
-    "tv monitor": "television",
-    "garbage can": "trash can",
-    "garbage bin": "trash can",
-    "trash bin": "trash can",
-    "rubbish bin": "trash can",
-    "waste bin": "trash can",
-    "wastebasket": "trash can",
-    "dustbin": "trash can",
-    "cellphone": "cell phone",
-    "mobile phone": "cell phone",
-    "smartphone": "cell phone",
-    "notebook computer": "laptop",
-    "laptop computer": "laptop",
-    "bedside table": "nightstand",
-    "night table": "nightstand",
-    "bookcase": "bookshelf",
-    "countertop": "counter",
-    "kitchen counter": "counter",
-    "houseplant": "plant",
-    "potted plant": "plant",
-    "computer monitor": "monitor",
-}
-_CAMEL = re.compile(r"(?<=[a-z0-9])(?=[A-Z])")
-_SEPARATORS = re.compile(r"[\s_\-/.]+")
-
-
-def label_key(name: str) -> str:
-    """The key two label names share when they name the same class (see the module docstring)."""
-    words = _SEPARATORS.sub(" ", _CAMEL.sub(" ", name)).lower().split()
-    if not words:
-        return ""
-    phrase = " ".join([*words[:-1], singular(words[-1])])
-    phrase = _SYNONYMS.get(phrase, _SYNONYMS.get(phrase.replace(" ", ""), phrase))
-    return phrase.replace(" ", "")
-
 
 def check_target_label(target_label: str, label_map: Mapping[int, str]) -> None:
     """InvalidInput (field "target_label") unless the label names a class the label map (if any) knows."""
-    key = label_key(target_label) if isinstance(target_label, str) else ""
+    key = class_key(target_label) if isinstance(target_label, str) else ""
     if not key:
         msg = f"the target label must name a class, got {target_label!r}"
         raise InvalidInput(msg, "target_label")
-    if label_map and not any(label_key(name) == key for name in label_map.values()):
+    if label_map and not any(class_key(name) == key for name in label_map.values()):
         msg = f"no name in the session's label_map matches the target {target_label!r}"
         raise InvalidInput(msg, "target_label")
 
@@ -238,12 +194,12 @@ def mapped_look_alikes(grid: VoxelGrid, scene_graph: SceneGraph, target_label: s
     Boxes are the objects' own (yaw respected, nothing added on top); an object smaller than a voxel gets the
     voxel holding its centre, as in the summary's places. Empty when the target class is unknown.
     """
-    key = label_key(target_label) if target_label else ""
+    key = class_key(target_label) if target_label else ""
     parts = []
     if key:
         places = cached_place_index(grid, scene_graph, on_margin=0.0).objects  # one per object, in order
         for place in places:
-            if label_key(place.label) != key:
+            if class_key(place.label) != key:
                 continue
             i, j, k = (np.arange(axis.start, axis.stop) for axis in place.slices)
             flat = np.ravel_multi_index(np.meshgrid(i, j, k, indexing="ij"), grid.shape)  # (bx, by, bz)
@@ -276,7 +232,7 @@ class ObservationModel:
         if look_alikes is not None and len(look_alikes):
             self._look_alike_mask = np.zeros(grid.n_voxels, dtype=bool)
             self._look_alike_mask[np.asarray(look_alikes, dtype=np.int64)] = True
-        self._target_key = label_key(target_label)
+        self._target_key = class_key(target_label)
         if target_label and not self._target_key:
             msg = f"the target label {target_label!r} names no class"
             raise InvalidInput(msg, "target_label")
@@ -286,7 +242,7 @@ class ObservationModel:
         # label id -> 1 (names the target), 0 (another class), -1 (not in the label map)
         table = np.full(max(label_map, default=-1) + 1, -1, dtype=np.int8)
         for label_id, name in label_map.items():
-            table[label_id] = label_key(name) == self._target_key
+            table[label_id] = class_key(name) == self._target_key
         if self._target_key and label_map and not np.any(table == 1):
             msg = f"no name in label_map matches the target {target_label!r}; name it or send string labels"
             raise InvalidInput(msg, "label_map")
@@ -313,7 +269,7 @@ class ObservationModel:
             return classes == 1
         if arr.dtype.kind == "U":
             names, inverse = np.unique(arr, return_inverse=True)
-            return np.array([label_key(str(name)) == self._target_key for name in names], dtype=bool)[inverse]
+            return np.array([class_key(str(name)) == self._target_key for name in names], dtype=bool)[inverse]
         msg = f"labels must be all integers (ids in the label map) or all strings, got dtype {arr.dtype}"
         raise InvalidInput(msg, "labels")
 

@@ -11,7 +11,7 @@ label y is drawn as
 so P(y = T | c = T) = tp and P(y = T | c != T) = fp for every observed voxel, free ones included: exactly
 the sensor model (tp, fp) that the belief service's vision update (its equation (4)) assumes, so pass
 `LabelNoise.tp` and `LabelNoise.fp` to the session. Classes are compared the way the service compares them
-(`app.belief.session.label_key`: "Trash Can" == "trash can" == "trashcans"). Other objects of the target's
+(`app.vocabulary.class_key`: "Trash Can" == "trash can" == "trashcans"). Other objects of the target's
 class are T too: they are the distractors that a class-level segmenter cannot tell from the target.
 
 The vocabulary (classes that confusions may produce) defaults to the classes present in the labels; pass the
@@ -27,9 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.belief.session import label_key
 from app.errors import InvalidInput
 from app.sim.world import FREE_LABEL
+from app.vocabulary import class_key
 
 #: What a missed target voxel is reported as when the vocabulary holds no other class.
 UNKNOWN_LABEL = "unknown"
@@ -64,19 +64,19 @@ class LabelNoise:
         """(M,) reported labels for (M,) true labels, drawn by equations (1)-(3)."""
         true = np.asarray(labels, dtype=str).reshape(-1)  # (M,)
         names, inverse = np.unique(true, return_inverse=True)
-        target_key = label_key(target_label)
+        target_key = class_key(target_label)
         vocab = sorted(
             {
                 str(n)
                 for n in (names if vocabulary is None else vocabulary)
-                if n != FREE_LABEL and label_key(str(n)) != target_key
+                if n != FREE_LABEL and class_key(str(n)) != target_key
             }
         )
         # Reported labels are codes into `table`: first the vocabulary, then the rest.
         table = list(dict.fromkeys([*vocab, *(str(n) for n in names), target_label, UNKNOWN_LABEL]))
         code_of = {name: k for k, name in enumerate(table)}
         name_codes = np.array([code_of[str(n)] for n in names], dtype=np.int64)
-        name_is_target = np.array([label_key(str(n)) == target_key for n in names], dtype=bool)
+        name_is_target = np.array([class_key(str(n)) == target_key for n in names], dtype=bool)
         codes = name_codes[inverse]  # (M,)
         is_target = name_is_target[inverse]
         is_free = (names == FREE_LABEL)[inverse]

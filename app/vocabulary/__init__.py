@@ -1,0 +1,266 @@
+"""The one vocabulary: how object names are normalised, which names mean the same kind of thing, and which
+words of an utterance can name an object at all.
+
+Every part that compares names uses these functions: the belief (is this label the target's class?), the
+proposers (which objects does "the bin" name?), the parser (which words of "this is a brown chair by the
+window" are objects?), the case builder (how may a speaker call a labelled object?) and the simulator.
+
+- `lemmas("Kitchen_Cabinets") == "kitchen cabinet"`: lower case, words split at case changes, underscores
+  and dashes, each word singular.
+- `class_key(name)`: one key per kind of object. Two names are the same class when their keys are equal:
+  the same lemmas up to spaces ("trash can", "trashcans"), or two names of one `SYNONYM_GROUPS` entry
+  ("sofa", "couch"). Groups are disjoint, so "same class" is an equivalence.
+- `GENERIC_NAMES`: a word that covers several classes ("bag" covers backpack and handbag, "bin" the trash can
+  and the recycling bin). A generic phrase names each of them loosely (`lexical_match` 1), never as the
+  same class.
+- `lexical_match(phrase, name)`: 2 for the same class, 1 for a looser naming (the same head noun, "table" and
+  "coffee table", or a generic word), 0 otherwise.
+- `object_nouns()`: the lemmatised names of things indoor maps hold (every label of the training layouts,
+  the synonyms and the generic words), the parser's lexicon of possible mentions.
+"""
+
+from __future__ import annotations
+
+import re
+from functools import cache, lru_cache
+from pathlib import Path
+
+__all__ = [
+    "GENERIC_NAMES",
+    "SYNONYM_GROUPS",
+    "class_key",
+    "head_noun",
+    "label_tokens",
+    "lemmas",
+    "lexical_match",
+    "normalise",
+    "object_nouns",
+    "other_names",
+    "same_class",
+    "singular",
+]
+
+_IRREGULAR_PLURALS = {
+    "shelves": "shelf",
+    "halves": "half",
+    "knives": "knife",
+    "leaves": "leaf",
+    "wolves": "wolf",
+    "people": "person",
+    "feet": "foot",
+    "mice": "mouse",
+    "dishes": "dish",
+    "glasses": "glass",
+    "clothes": "clothes",
+    "pants": "pants",
+    "shorts": "shorts",
+    "scissors": "scissors",
+}
+# Words that end in "s" in the singular.
+_SINGULAR_S = frozenset(
+    {"glass", "bus", "gas", "lens", "canvas", "chess", "dress", "mattress", "news", "series"}
+)
+_WORD = re.compile(r"[a-z0-9']+")
+_CAMEL = re.compile(r"(?<=[a-z0-9])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])")
+_SEPARATORS = re.compile(r"[_\-/.]+")
+
+
+def normalise(text: str) -> str:
+    """Lower case, plain spaces, no punctuation except apostrophes."""
+    return " ".join(_WORD.findall(text.lower().replace("’", "'")))
+
+
+def singular(word: str) -> str:
+    """Rough English singular of one word ("boxes" -> "box", "chairs" -> "chair", "glass" stays)."""
+    if word in _IRREGULAR_PLURALS:
+        return _IRREGULAR_PLURALS[word]
+    if word in _SINGULAR_S:
+        return word
+    if len(word) > 4 and word.endswith("ies"):
+        return word[:-3] + "y"
+    if len(word) > 3 and word.endswith(("ches", "shes", "xes", "sses")):
+        return word[:-2]
+    if len(word) > 2 and word.endswith("s") and not word.endswith(("ss", "us", "is")):
+        return word[:-1]
+    return word
+
+
+def label_tokens(text: str) -> tuple[str, ...]:
+    """The singular words of a label or phrase: "KitchenCabinets" -> ("kitchen", "cabinet")."""
+    spaced = _SEPARATORS.sub(" ", _CAMEL.sub(" ", text))
+    return tuple(singular(w) for w in normalise(spaced).split())
+
+
+@lru_cache(maxsize=1 << 16)
+def lemmas(text: str) -> str:
+    """Lower-case singular words: "Kitchen_Cabinets" -> "kitchen cabinet"."""
+    return " ".join(label_tokens(text))
+
+
+def head_noun(lemma_text: str) -> str:
+    """The noun a phrase is about: its last word, or the word before "of" ("chest of drawer" -> "chest")."""
+    words = lemma_text.split()
+    if "of" in words[1:]:
+        return words[words.index("of") - 1]
+    return words[-1] if words else ""
+
+
+#: Names of one kind of object (lemmatised; the first is the class's key). Disjoint groups.
+SYNONYM_GROUPS: tuple[tuple[str, ...], ...] = tuple(
+    tuple(group.split(", "))
+    for group in (
+        "couch, sofa, settee",
+        "tv, television, tv screen, tv monitor",
+        "refrigerator, fridge",
+        "mini fridge, small fridge",
+        "trash can, garbage can, trash bin, garbage bin, waste bin, wastebasket, rubbish bin, dustbin",
+        "recycling bin, recycling",
+        "cabinet, cupboard",
+        "kitchen cabinet, kitchen cupboard",
+        "nightstand, night stand, bedside table, night table",
+        "dresser, chest of drawer",
+        "bookshelf, bookcase, book shelf",
+        "shelving unit, shelf unit",
+        "armchair, arm chair, easy chair, sofa chair",
+        "office chair, desk chair",
+        "counter, countertop, kitchen counter, worktop",
+        "cell phone, mobile phone, mobile, smartphone, cellphone",
+        "telephone, landline",
+        "end table, side table",
+        "dining table, kitchen table",
+        "coffee table, cocktail table",
+        "rug, carpet",
+        "monitor, computer screen, computer monitor, display",
+        "laptop, notebook computer, laptop computer",
+        "computer tower, pc, desktop computer",
+        "backpack, rucksack, knapsack",
+        "remote control, remote, tv remote",
+        "bathtub, tub, bath",
+        "toilet paper, toilet roll",
+        "tissue box, box of tissue",
+        "laundry hamper, hamper, laundry basket",
+        "coffee maker, coffee machine",
+        "whiteboard, white board, dry erase board",
+        "mug, coffee mug",
+        "pillow, cushion",
+        "plant, house plant, houseplant, potted plant",
+        "doorframe, door frame",
+        "file cabinet, filing cabinet",
+        "keychain, key, key ring",
+        "clothes, clothing",
+        "garbage bag, trash bag",
+        "microwave, microwave oven",
+        "stove, cooker",
+        "sink, basin, washbasin",
+        "wardrobe, armoire",
+        "picture, photo, photograph",
+        "alarm clock, clock radio",
+        "tennis racket, racket",
+        "baseball bat, bat",
+        "dumbbell, weight",
+        "wine bottle, bottle of wine",
+        "soap bottle, soap dispenser",
+        "basketball, ball",
+        "blackboard, chalkboard",
+        "blinds, window blind",
+        "curtain, drape",
+        "printer, printing machine",
+    )
+)
+
+#: Generic words and the classes they may name (a looser match than a synonym; lemmatised).
+GENERIC_NAMES: dict[str, tuple[str, ...]] = {
+    "bag": ("backpack", "handbag", "purse", "paper bag", "plastic bag", "garbage bag", "bag"),
+    "bin": ("trash can", "recycling bin", "storage bin"),
+    "lamp": ("desk lamp", "floor lamp", "table lamp", "lamp"),
+    "light": ("lamp", "ceiling light", "desk lamp", "floor lamp", "light"),
+    "phone": ("cell phone", "telephone"),
+    "screen": ("monitor", "tv", "projector screen"),
+    "computer": ("computer tower", "laptop", "monitor"),
+    "seat": ("chair", "office chair", "armchair", "stool", "bench", "couch"),
+    "couch": ("couch", "sofa chair", "loveseat"),
+    "clock": ("alarm clock", "wall clock", "clock"),
+    "shelf": ("bookshelf", "shelving unit", "shelf"),
+    "board": ("whiteboard", "blackboard", "bulletin board", "board"),
+    "basket": ("laundry hamper", "basket"),
+    "container": ("box", "storage bin", "storage container", "bucket", "basket"),
+    "cupboard": ("kitchen cabinet", "cabinet"),
+    "table": ("dining table", "coffee table", "end table", "desk", "nightstand", "table"),
+    "desk": ("desk", "table"),
+}
+
+
+def _group_index() -> dict[str, int]:
+    index: dict[str, int] = {}
+    for number, group in enumerate(SYNONYM_GROUPS):
+        for name in group:
+            key = lemmas(name)
+            if key in index:
+                msg = f"{name!r} is in two synonym groups; groups must be disjoint"
+                raise ValueError(msg)
+            index[key] = number
+    return index
+
+
+_GROUP = _group_index()
+
+
+def _group_index_without_spaces() -> dict[str, int]:
+    return {name.replace(" ", ""): number for name, number in _GROUP.items()}
+
+
+_GROUP_WITHOUT_SPACES = _group_index_without_spaces()
+
+
+@lru_cache(maxsize=1 << 16)
+def class_key(name: str) -> str:
+    """The key shared by every name of one kind of object ("Sofa", "couches" -> "couch"; "Trash_Can",
+    "trashcans", "garbage bin" -> "trashcan"): the class's first name, lemmatised, without spaces."""
+    lemma = lemmas(name).replace(" ", "")
+    group = _GROUP_WITHOUT_SPACES.get(lemma)
+    return lemmas(SYNONYM_GROUPS[group][0]).replace(" ", "") if group is not None else lemma
+
+
+def same_class(a: str, b: str) -> bool:
+    """Whether two names mean the same kind of object."""
+    key = class_key(a)
+    return bool(key) and key == class_key(b)
+
+
+def other_names(name: str) -> tuple[str, ...]:
+    """The other names of a name's class (what a speaker may say instead of the label)."""
+    lemma = lemmas(name)
+    group = _GROUP.get(lemma)
+    return () if group is None else tuple(n for n in SYNONYM_GROUPS[group] if lemmas(n) != lemma)
+
+
+def _generic_covers(phrase: str, name: str) -> bool:
+    covered = GENERIC_NAMES.get(phrase)
+    return covered is not None and any(class_key(c) == class_key(name) for c in covered)
+
+
+@lru_cache(maxsize=1 << 16)
+def lexical_match(phrase: str, name: str) -> int:
+    """2: the same class; 1: a looser naming (same head noun, or a generic word covering it); 0: neither.
+
+    Both arguments are lemmatised names.
+    """
+    if not phrase or not name:
+        return 0
+    if same_class(phrase, name):
+        return 2
+    if head_noun(phrase) == head_noun(name) or _generic_covers(phrase, name):
+        return 1
+    return 0
+
+
+@cache
+def object_nouns() -> frozenset[str]:
+    """Every lemmatised name the parser may read as a mention of an object (see the module docstring)."""
+    path = Path(__file__).with_name("object_nouns.txt")
+    lines = path.read_text(encoding="utf-8").splitlines()
+    listed = {lemmas(line) for line in lines if line.strip() and not line.startswith("#")}
+    listed.discard("")
+    synonyms = {lemmas(n) for group in SYNONYM_GROUPS for n in group}
+    generic = {lemmas(g) for g in GENERIC_NAMES} | {lemmas(c) for cs in GENERIC_NAMES.values() for c in cs}
+    return frozenset(listed | synonyms | generic)
