@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import copy
 import json
+from collections.abc import Iterator
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -11,8 +13,71 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.api.app import create_app
-from app.grounding.mixture import Gaussian, GaussianMixture
+from app.api.routes.ground import to_response
+from app.api.services import Sensors
+from app.grounding.geometric import GeometricGrounder
+from app.grounding.hypotheses import Hypothesis
+from app.grounding.lexical import LexicalProposer
+from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox
+from app.grounding.sensor import LanguageSensor
+from app.scene_graph.model import SceneGraph
 from app.settings import Settings
+from tests.conftest import model_free_settings
+
+
+class BoxedGrounder:
+    """The geometric grounder's Gaussian per hypothesis with a wider tail and a uniform box around it: a
+    density of two Gaussians and a box (weights 0.6, 0.3, 0.1), as a grounder serving boxes answers."""
+
+    name = "boxed"
+    version = "test"
+    weights = (0.6, 0.3, 0.1)
+
+    def __init__(self) -> None:
+        self.inner = GeometricGrounder()
+
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
+        out = []
+        for core in self.inner.ground(scene_graph, utterance, hypotheses):
+            mean, cov = core.means[0], core.covariances[0]
+            out.append(
+                GaussianMixture.from_components(
+                    self.weights[:2],
+                    [Gaussian(mean, cov), Gaussian(mean, 4.0 * cov)],
+                    boxes=[UniformBox.around(mean - 0.3, mean + 0.3)],
+                    box_weights=self.weights[2:],
+                )
+            )
+        return out
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "version": self.version, "config": {}, "checksum": None}
+
+
+def boxed_sensors() -> Sensors:
+    """The lexical proposer and `BoxedGrounder`, the service's only grounder."""
+    return Sensors(
+        grounders={"boxed": BoxedGrounder()}, proposers={"builtin": LexicalProposer()}, default="boxed"
+    )
+
+
+@pytest.fixture
+def boxed_client() -> Iterator[TestClient]:
+    """A service whose mixtures hold uniform boxes beside their Gaussians."""
+    with TestClient(create_app(model_free_settings(), sensors=boxed_sensors())) as test_client:
+        yield test_client
+
+
+def served_mixture(mixture: dict[str, Any]) -> GaussianMixture:
+    """The density a response's `mixture` describes: its Gaussians and its uniform boxes."""
+    return GaussianMixture.from_components(
+        [c["weight"] for c in mixture["components"]],
+        [Gaussian(np.array(c["mean"]), np.array(c["covariance"])) for c in mixture["components"]],
+        boxes=[UniformBox(np.array(b["low"]), np.array(b["high"])) for b in mixture["uniform"]],
+        box_weights=[b["weight"] for b in mixture["uniform"]],
+    )
 
 
 def _ground(client: TestClient, scene_graph: Any, utterance: str, **extra: Any) -> Any:
@@ -20,13 +85,15 @@ def _ground(client: TestClient, scene_graph: Any, utterance: str, **extra: Any) 
 
 
 def _assert_valid_mixture(mixture: dict[str, Any]) -> None:
-    weights = [c["weight"] for c in mixture["components"]]
+    weights = [c["weight"] for c in mixture["components"]] + [b["weight"] for b in mixture["uniform"]]
     assert sum(weights) == pytest.approx(1.0)
     for component in mixture["components"]:
         cov = np.array(component["covariance"])
         assert cov.shape == (3, 3)
         np.testing.assert_allclose(cov, cov.T)
         assert np.linalg.eigvalsh(cov).min() > 0
+    for box in mixture["uniform"]:
+        assert all(hi > lo for lo, hi in zip(box["low"], box["high"], strict=True))
 
 
 def test_two_tables_give_two_equally_weighted_hypotheses(client: TestClient, scene_graph_dict: dict) -> None:
@@ -43,10 +110,11 @@ def test_two_tables_give_two_equally_weighted_hypotheses(client: TestClient, sce
     assert body["model"]["name"] == "geometric"
     assert set(body["timings_ms"]) == {"proposer", "grounder"}
     _assert_valid_mixture(body["mixture"])
-    # Each component sits just above its table's top surface.
+    # Each component belongs to one hypothesis and sits just above that hypothesis's table.
     by_id = {o["id"]: o for o in scene_graph_dict["objects"]}
-    for h, c in zip(body["hypotheses"], body["mixture"]["components"], strict=True):
-        table = by_id[h["anchor_ids"][0]]
+    assert [c["hypothesis"] for c in body["mixture"]["components"]] == [0, 1]
+    for c in body["mixture"]["components"]:
+        table = by_id[body["hypotheses"][c["hypothesis"]]["anchor_ids"][0]]
         top = table["center"][2] + table["size"][2] / 2
         assert c["mean"][2] == pytest.approx(top + 0.1)
 
@@ -56,11 +124,7 @@ def test_query_points_return_the_mixture_log_density(client: TestClient, scene_g
     on_top = [table["center"][0], table["center"][1], table["center"][2] + table["size"][2] / 2 + 0.1]
     far = [on_top[0] + 5.0, on_top[1] + 5.0, on_top[2]]
     body = _ground(client, scene_graph_dict, "the mouse is on the desk", query_points=[on_top, far]).json()
-    comps = body["mixture"]["components"]
-    mixture = GaussianMixture.from_components(
-        [c["weight"] for c in comps],
-        [Gaussian(np.array(c["mean"]), np.array(c["covariance"])) for c in comps],
-    )
+    mixture = served_mixture(body["mixture"])
     np.testing.assert_allclose(body["query_log_density"], mixture.logpdf(np.array([on_top, far])), rtol=1e-9)
     assert body["query_log_density"][0] > body["query_log_density"][1]
 
@@ -104,6 +168,7 @@ def test_unmatched_anchor_falls_back_to_a_broad_prior(client: TestClient, scene_
     assert "piano" in body["reason"]
     assert body["hypotheses"] == []
     assert len(body["mixture"]["components"]) == 1
+    assert body["mixture"]["components"][0]["hypothesis"] is None  # a broad prior, of no hypothesis
     _assert_valid_mixture(body["mixture"])
     # Broad: the prior spreads over the room (variance = width^2 / 12 of the scene's box).
     assert min(np.diag(body["mixture"]["components"][0]["covariance"])[:2]) > 0.5
@@ -194,3 +259,50 @@ def test_curl_d_without_a_content_type_header_works(client: TestClient, scene_gr
     assert response.status_code == 200, response.text
     garbage = client.post("/v1/ground", content="utterance=hello", headers=headers)
     assert garbage.status_code == 422
+
+
+def test_uniform_boxes_are_served_beside_the_gaussians_of_each_hypothesis(
+    boxed_client: TestClient, scene_graph_dict: dict
+) -> None:
+    table = next(o for o in scene_graph_dict["objects"] if o["label"] == "table")
+    on_top = [table["center"][0], table["center"][1], table["center"][2] + table["size"][2] / 2 + 0.1]
+    points = [on_top, [on_top[0] + 0.25, *on_top[1:]], [on_top[0] + 5.0, *on_top[1:]]]
+    body = _ground(
+        boxed_client, scene_graph_dict, "I left my backpack on the table", query_points=points
+    ).json()
+    hypotheses, mixture = body["hypotheses"], body["mixture"]
+    assert len(hypotheses) == 2 and len(mixture["uniform"]) == 2
+    _assert_valid_mixture(mixture)
+    # Two Gaussians per hypothesis, in hypothesis order, each pointing at its own hypothesis.
+    assert [c["hypothesis"] for c in mixture["components"]] == [0, 0, 1, 1]
+    by_id = {o["id"]: o for o in scene_graph_dict["objects"]}
+    for component in mixture["components"]:
+        h = hypotheses[component["hypothesis"]]
+        table = by_id[h["anchor_ids"][0]]
+        assert component["mean"][:2] == pytest.approx(table["center"][:2])
+    for h, pair in zip(hypotheses, [mixture["components"][:2], mixture["components"][2:]], strict=True):
+        assert [c["weight"] for c in pair] == pytest.approx([0.6 * h["weight"], 0.3 * h["weight"]])
+    for h, box in zip(hypotheses, mixture["uniform"], strict=True):
+        assert box["weight"] == pytest.approx(0.1 * h["weight"])
+        table = by_id[h["anchor_ids"][0]]
+        centre = [(lo + hi) / 2 for lo, hi in zip(box["low"], box["high"], strict=True)]
+        assert centre[:2] == pytest.approx(table["center"][:2])
+        assert [hi - lo for lo, hi in zip(box["low"], box["high"], strict=True)] == pytest.approx([0.6] * 3)
+    # The served terms are the whole density: they give the log-density the service computed.
+    expected = served_mixture(mixture).logpdf(np.array(points))
+    np.testing.assert_allclose(body["query_log_density"], expected, rtol=1e-9)
+
+
+def test_a_background_box_appended_to_the_mixture_belongs_to_no_hypothesis(scene_graph_dict: dict) -> None:
+    scene_graph = SceneGraph.model_validate(scene_graph_dict)
+    sensor = LanguageSensor(LexicalProposer(), BoxedGrounder())
+    result = sensor.ground(scene_graph, "I left my backpack on the table")
+    low, high = scene_graph.bounds()
+    background = UniformBox(np.asarray(low), np.asarray(high))
+    body = to_response(replace(result, mixture=result.mixture.with_background(0.2, background)), sensor, None)
+    mixture = body.mixture.model_dump()
+    _assert_valid_mixture(mixture)
+    assert [c["hypothesis"] for c in mixture["components"]] == [0, 0, 1, 1]
+    assert [b["weight"] for b in mixture["uniform"]] == pytest.approx([0.04, 0.04, 0.2])
+    assert mixture["uniform"][-1]["low"] == background.low.tolist()
+    assert mixture["uniform"][-1]["high"] == background.high.tolist()

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag
+from pydantic.config import JsonDict
 
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, Vec3
@@ -88,13 +89,70 @@ class HypothesisOut(BaseModel):
 
 
 class ComponentOut(BaseModel):
-    weight: float
-    mean: list[float] = Field(min_length=3, max_length=3)
-    covariance: list[list[float]] = Field(description="3x3, symmetric positive definite (m^2).")
+    """One Gaussian term w_k N(x; mu_k, Sigma_k) of the mixture."""
+
+    weight: float = Field(description="w_k: this Gaussian's share of the whole mixture's mass.")
+    mean: list[float] = Field(min_length=3, max_length=3, description="mu_k (m), the scene graph's frame.")
+    covariance: list[list[float]] = Field(description="Sigma_k: 3x3, symmetric positive definite (m^2).")
+    hypothesis: int | None = Field(
+        ge=0,
+        description=(
+            "Index in `hypotheses` of the hypothesis this Gaussian belongs to (a hypothesis's density may "
+            "have several: a core and a wider tail); null for a Gaussian of no hypothesis, e.g. the broad "
+            "prior of an utterance that was not grounded."
+        ),
+        examples=[0, None],
+    )
+
+
+class UniformBoxOut(BaseModel):
+    """One uniform term v_b U(x; box_b) of the mixture: an axis-aligned box in the scene graph's frame."""
+
+    weight: float = Field(description="v_b: this box's share of the whole mixture's mass.")
+    low: list[float] = Field(min_length=3, max_length=3, description="The box's lower corner [x, y, z] (m).")
+    high: list[float] = Field(
+        min_length=3,
+        max_length=3,
+        description="The box's upper corner [x, y, z] (m), above `low` on each axis.",
+    )
+
+
+_MIXTURE_EXAMPLE: JsonDict = {
+    "components": [
+        {
+            "weight": 0.45,
+            "mean": [1.5, 0.5, 0.85],
+            "covariance": [[0.04, 0.0, 0.0], [0.0, 0.04, 0.0], [0.0, 0.0, 0.0025]],
+            "hypothesis": 0,
+        },
+        {
+            "weight": 0.45,
+            "mean": [-2.0, 1.0, 0.55],
+            "covariance": [[0.04, 0.0, 0.0], [0.0, 0.04, 0.0], [0.0, 0.0, 0.0025]],
+            "hypothesis": 1,
+        },
+    ],
+    "uniform": [{"weight": 0.1, "low": [-4.5, -2.5, 0.0], "high": [4.5, 2.5, 2.4]}],
+}
 
 
 class MixtureOut(BaseModel):
-    components: list[ComponentOut]
+    """The density of the target's position x (m, the scene graph's frame):
+
+    p(x) = sum_k w_k N(x; mu_k, Sigma_k) + sum_b v_b U(x; box_b),
+
+    with `components` the Gaussians (w_k, mu_k, Sigma_k) and `uniform` the boxes (v_b, box_b). The weights of
+    the components and of the boxes together sum to one. U(x; box) = 1 / vol(box) inside the closed box
+    [low, high] and 0 outside. A box carries a broad term exactly ("I may have misunderstood", a prior over a
+    region or the whole map). `query_log_density` is log p(x) of this density, and a session's belief fuses
+    exactly it: log(p(c_i) V) at every voxel centre c_i (V the voxel volume), the language layer bounding its
+    span so that no voxel is ruled out for good.
+    """
+
+    model_config = ConfigDict(json_schema_extra={"examples": [_MIXTURE_EXAMPLE]})
+
+    components: list[ComponentOut] = Field(description="The Gaussian terms (empty when boxes carry all).")
+    uniform: list[UniformBoxOut] = Field(description="The uniform-box terms (empty when there are none).")
 
 
 class ModelRef(BaseModel):

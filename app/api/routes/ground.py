@@ -17,6 +17,7 @@ from app.api.schemas import (
     ModelRef,
     ParseOut,
     TargetOut,
+    UniformBoxOut,
 )
 from app.errors import LimitExceeded
 from app.grounding.hypotheses import Hypothesis
@@ -83,9 +84,20 @@ def caller_hypotheses(options: GroundOptions | None) -> list[Hypothesis] | None:
     return [Hypothesis(tuple(h.anchor_ids), h.relation, weight=h.weight) for h in options.hypotheses]
 
 
+def component_hypotheses(result: Grounding) -> list[int | None]:
+    """The index in `result.hypotheses` of each Gaussian of the mixture, None for one of no hypothesis.
+
+    The mixture holds the densities' Gaussians first, in hypothesis order; a Gaussian after them (a broad
+    prior, all of them when the utterance was not grounded) belongs to no hypothesis.
+    """
+    owners: list[int | None] = [h for h, density in enumerate(result.densities) for _ in density.weights]
+    return owners + [None] * (len(result.mixture.weights) - len(owners))
+
+
 def to_response(result: Grounding, sensor: LanguageSensor, densities: list[float] | None) -> GroundResponse:
     parse = result.proposal.parse
     mixture = result.mixture
+    owners = component_hypotheses(result)
     return GroundResponse(
         target=TargetOut(label=parse.target),
         parse=ParseOut(
@@ -109,9 +121,15 @@ def to_response(result: Grounding, sensor: LanguageSensor, densities: list[float
         ],
         mixture=MixtureOut(
             components=[
-                ComponentOut(weight=float(w), mean=m.tolist(), covariance=c.tolist())
-                for w, m, c in zip(mixture.weights, mixture.means, mixture.covariances, strict=True)
-            ]
+                ComponentOut(weight=float(w), mean=m.tolist(), covariance=c.tolist(), hypothesis=h)
+                for w, m, c, h in zip(
+                    mixture.weights, mixture.means, mixture.covariances, owners, strict=True
+                )
+            ],
+            uniform=[
+                UniformBoxOut(weight=float(v), low=lo.tolist(), high=hi.tolist())
+                for v, lo, hi in zip(mixture.box_weights, mixture.box_lows, mixture.box_highs, strict=True)
+            ],
         ),
         query_log_density=densities,
         model=ModelRef(name=sensor.grounder.name, version=sensor.grounder.version),
