@@ -196,6 +196,9 @@ class VLMapClient:
         return _json(self._send(_Calls.replace_scene_graph(session_id, scene_graph)))
 
     def send_utterance(self, session_id: str, utterance: str, options: dict[str, Any] | None = None) -> dict:
+        """The service's answer as a dict: "grounding", "belief", "fused" (false: the utterance was about
+        another class than the session's target and left the belief as it was) and "reason" (why not fused,
+        or why only the broad prior of an ungrounded utterance was; None otherwise)."""
         return _json(self._send(_Calls.send_utterance(session_id, utterance, options)))
 
     def send_observations(self, session_id: str, summary: bool = True, **batch: Any) -> dict[str, Any]:
@@ -258,6 +261,7 @@ class AsyncVLMapClient:
     async def send_utterance(
         self, session_id: str, utterance: str, options: dict[str, Any] | None = None
     ) -> dict:
+        """As `VLMapClient.send_utterance`: a dict with "grounding", "belief", "fused" and "reason"."""
         return _json(await self._send(_Calls.send_utterance(session_id, utterance, options)))
 
     async def send_observations(self, session_id: str, summary: bool = True, **batch: Any) -> dict[str, Any]:

@@ -372,3 +372,106 @@ def test_summary_refresh_runs_once_more_for_updates_during_a_job_and_stops_when_
     now[0] = 11.0  # no read for longer than watch_s
     assert not cache.refresh("s", slow)
     assert calls == [5, 7, 5, 7]
+
+
+def _say(client: TestClient, session_id: str, utterance: str) -> dict[str, Any]:
+    response = client.post(f"/v1/sessions/{session_id}/utterances", json={"utterance": utterance})
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def test_an_utterance_about_another_class_is_answered_not_fused(
+    client: TestClient, scene_graph_dict: dict
+) -> None:
+    sid = _create(client, scene_graph_dict, target_label="keys")["id"]
+    first = _say(client, sid, "my keys are on the desk")
+    assert (first["fused"], first["reason"]) == (True, None)
+    before = _grid(client, sid, layers=True)
+    body = _say(client, sid, "the mug is on the desk")
+    assert body["fused"] is False
+    assert "'mug'" in body["reason"] and "'keys'" in body["reason"]
+    # The grounding is there for inspection; the belief is the one before, to the bit.
+    assert body["grounding"]["grounded"] is True and body["grounding"]["target"] == {"label": "mug"}
+    desk = next(o["id"] for o in scene_graph_dict["objects"] if o["label"] == "desk")
+    assert body["grounding"]["hypotheses"][0]["anchor_ids"] == [desk]
+    assert body["belief"]["version"] == before["version"] == 1
+    assert body["belief"]["target_label"] == "keys"
+    after = _grid(client, sid, layers=True)
+    assert after["version"] == before["version"]
+    np.testing.assert_array_equal(after["lang"], before["lang"])
+    np.testing.assert_array_equal(after["vis"], before["vis"])
+    assert client.get(f"/v1/sessions/{sid}").json()["version"] == 1
+
+
+@pytest.mark.parametrize(
+    ("target_label", "utterance"),
+    [
+        ("backpack", "my bag is on the table"),  # a generic word naming the target's class loosely
+        ("keychain", "the keys are on the table"),  # a synonym
+        ("backpack", "my black backpack is on the table"),  # the same head noun
+        ("backpack", "it is on the table"),  # names no object
+        ("backpack", "something is on the table"),
+    ],
+)
+def test_namings_of_the_target_class_and_phrases_naming_no_object_fuse(
+    client: TestClient, two_rooms: dict, target_label: str, utterance: str
+) -> None:
+    sid = _create(client, two_rooms, target_label=target_label)["id"]
+    before = _grid(client, sid, layers=True)
+    body = _say(client, sid, utterance)
+    assert (body["fused"], body["reason"]) == (True, None)
+    assert body["belief"]["version"] == 1 and body["belief"]["target_label"] == target_label
+    assert {h["anchor_ids"][0] for h in body["grounding"]["hypotheses"]} == {"t1", "t2"}
+    assert not np.array_equal(_grid(client, sid, layers=True)["lang"], before["lang"])
+
+
+def test_an_ungroundable_utterance_fuses_its_broad_prior_and_says_so(
+    client: TestClient, two_rooms: dict
+) -> None:
+    sid = _create(client, two_rooms, target_label="keys")["id"]
+    before = _grid(client, sid, layers=True)
+    body = _say(client, sid, "the keys are next to the spaceship")
+    grounding = body["grounding"]
+    assert grounding["grounded"] is False and "spaceship" in grounding["reason"]
+    assert grounding["hypotheses"] == []
+    assert all(c["hypothesis"] is None for c in grounding["mixture"]["components"])
+    assert body["fused"] is True
+    assert "broad prior" in body["reason"] and "spaceship" in body["reason"]
+    assert body["belief"]["version"] == 1
+    assert not np.array_equal(_grid(client, sid, layers=True)["lang"], before["lang"])
+
+
+def test_an_unset_target_is_still_learnt_from_the_first_utterance_naming_a_class(
+    client: TestClient, two_rooms: dict
+) -> None:
+    sid = _create(client, two_rooms)["id"]
+    body = _say(client, sid, "the mug is on the table")
+    assert (body["fused"], body["reason"]) == (True, None)
+    assert body["belief"]["target_label"] == "mug" and body["belief"]["version"] == 2
+    refused = _say(client, sid, "my backpack is on the sofa")
+    assert refused["fused"] is False and refused["belief"]["version"] == 2
+
+
+def test_the_belief_fuses_exactly_the_served_density_boxes_included(two_rooms: dict) -> None:
+    from app.api.app import create_app
+    from app.belief.fusion import LayerLimits
+    from app.belief.grid import VoxelGrid
+    from app.grounding.mixture import GaussianMixture
+    from tests.conftest import model_free_settings
+    from tests.test_api_ground import boxed_sensors, served_mixture
+
+    with TestClient(create_app(model_free_settings(), sensors=boxed_sensors())) as client:
+        session = _create(client, two_rooms, target_label="backpack")
+        body = _say(client, session["id"], "my backpack is on the table")
+        mixture = body["grounding"]["mixture"]
+        assert len(mixture["uniform"]) == 2 and body["fused"] is True
+        lang = _grid(client, session["id"], layers=True)["lang"]
+    grid = session["grid"]
+    centers = VoxelGrid(tuple(grid["min_corner"]), tuple(grid["shape"]), grid["voxel_size"]).centers()
+    log_likelihood = served_mixture(mixture).logpdf(centers)
+    expected = np.maximum(log_likelihood - log_likelihood.max(), -LayerLimits().lang_span)
+    np.testing.assert_allclose(lang, expected, atol=1e-4)
+    # Not the Gaussians' alone: somewhere the boxes raise the density by more than a factor e.
+    served = served_mixture(mixture)
+    gaussians = GaussianMixture(served.weights, served.means, served.covariances).logpdf(centers)
+    assert np.max(log_likelihood - gaussians) > 1.0

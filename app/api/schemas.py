@@ -314,8 +314,32 @@ class UtteranceIn(BaseModel):
 
 
 class UtteranceOut(BaseModel):
+    """What fusing an utterance into a session did.
+
+    An utterance whose target phrase names an object class other than the session's target class ("the mug is
+    on the desk" while looking for keys) is not fused: `fused` is false, `reason` names both classes, the
+    grounding is returned for inspection and the belief and its version are unchanged. A looser naming of
+    the target's class ("my bag" for a backpack, "keys" for a keychain) and a phrase that names no object
+    ("it", "something") fuse. An utterance that could not be grounded fuses only its broad prior
+    (`grounding.grounded` false, `grounding.reason` why) and `reason` says so. While the session has no
+    target class, the first utterance whose target phrase names one sets it.
+    """
+
     grounding: GroundResponse
     belief: BeliefOut
+    fused: bool = Field(description="Whether the utterance's mixture was added to the belief.")
+    reason: str | None = Field(
+        default=None,
+        description=(
+            "Why the utterance was not fused, or why only its broad prior was; null when its grounded "
+            "mixture was fused."
+        ),
+        examples=[
+            "the utterance is about a 'mug', not the session's target 'keys': not fused",
+            "not grounded (no object in the scene graph matches 'spaceship'): the belief got only the "
+            "broad prior",
+        ],
+    )
 
 
 VoxelIndex = Annotated[int, Field(ge=-(2**31), lt=2**31, description="Voxel index along one axis (int32).")]

@@ -44,6 +44,7 @@ from app.grounding.sensor import Grounding, LanguageSensor
 from app.scene_graph.model import SceneGraph
 from app.settings import Settings
 from app.stores.base import SessionStore
+from app.vocabulary import head_noun, lemmas, lexical_match, object_nouns
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
@@ -282,16 +283,43 @@ def utterance_context(
     return _writable(store, principal, session_id), store.scene_graph(session_id)
 
 
+def utterance_verdict(target_label: str, result: Grounding) -> tuple[bool, str | None]:
+    """Whether a session looking for `target_label` fuses this grounding, and what to tell the caller.
+
+    Not fused: the session has a target class and the utterance's target phrase names an object class (its
+    lemmatised head noun, or the whole phrase, is one of `object_nouns()`) that no naming of the session's
+    matches (`lexical_match` 0; "bag" names a backpack loosely, "keys" a keychain). A phrase that names no
+    object ("it", "something", empty) fuses. An utterance that was not grounded fuses its broad prior, and
+    the reason says that the belief got only that.
+    """
+    spoken = result.proposal.parse.target
+    phrase = lemmas(spoken)
+    names_an_object = phrase in object_nouns() or head_noun(phrase) in object_nouns()
+    if target_label and names_an_object and lexical_match(phrase, lemmas(target_label)) == 0:
+        return (
+            False,
+            f"the utterance is about a {spoken!r}, not the session's target {target_label!r}: not fused",
+        )
+    if not result.grounded:
+        why = f" ({result.proposal.reason})" if result.proposal.reason else ""
+        return True, f"not grounded{why}: the belief got only the broad prior"
+    return True, None
+
+
 def fuse_utterance(
     store: SessionStore, cache: SummaryCache, info: SessionInfo, result: Grounding, sensor: LanguageSensor
 ) -> UtteranceOut:
-    """Add a grounded utterance to the belief; its target phrase names the session's target class if unset."""
-    store.apply_utterance(info.id, result.mixture)
-    target = result.proposal.parse.target
-    if not info.target_label and target and names_a_class(target, info.label_map):
-        store.set_target_label(info.id, target)
+    """Add an utterance to the belief unless `utterance_verdict` refuses it; while the session has no target
+    class, the utterance's target phrase names it."""
+    fused, reason = utterance_verdict(info.target_label, result)
+    if fused:
+        store.apply_utterance(info.id, result.mixture)
+        target = result.proposal.parse.target
+        if not info.target_label and target and names_a_class(target, info.label_map):
+            store.set_target_label(info.id, target)
     belief = belief_out(store, cache, info.id)
-    return UtteranceOut(grounding=to_response(result, sensor, None), belief=belief)
+    grounding = to_response(result, sensor, None)
+    return UtteranceOut(grounding=grounding, belief=belief, fused=fused, reason=reason)
 
 
 @router.post(
@@ -308,7 +336,7 @@ async def post_utterance(
     sensors: SensorsDep,
     services: ServicesDep,
 ) -> UtteranceOut:
-    """Fuse an utterance: ground it in the session's scene graph and add its log-likelihood to every voxel."""
+    """Ground an utterance in the session's scene graph and fuse it unless its target is another class."""
     options = body.options or GroundOptions()
     info, scene_graph = await services.run(utterance_context, store, principal, session_id)
     result, sensor = await services.ground(
