@@ -335,7 +335,7 @@ class UtteranceOut(BaseModel):
             "mixture was fused."
         ),
         examples=[
-            "the utterance is about a 'mug', not the session's target 'keys': not fused",
+            "the utterance's target 'mug' is not the session's target 'keys': not fused",
             "not grounded (no object in the scene graph matches 'spaceship'): the belief got only the "
             "broad prior",
         ],

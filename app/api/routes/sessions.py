@@ -298,7 +298,7 @@ def utterance_verdict(target_label: str, result: Grounding) -> tuple[bool, str |
     if target_label and names_an_object and lexical_match(phrase, lemmas(target_label)) == 0:
         return (
             False,
-            f"the utterance is about a {spoken!r}, not the session's target {target_label!r}: not fused",
+            f"the utterance's target {spoken!r} is not the session's target {target_label!r}: not fused",
         )
     if not result.grounded:
         why = f" ({result.proposal.reason})" if result.proposal.reason else ""
