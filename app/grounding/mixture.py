@@ -15,8 +15,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from app.scene_graph.model import SceneGraph
 
 #: Smallest eigenvalue (m^2) any covariance leaves the service with: a 1 cm standard deviation.
 MIN_EIGENVALUE_M2 = 1e-4
@@ -101,6 +105,21 @@ class UniformBox:
     def logpdf(self, points: np.ndarray) -> np.ndarray:
         """-log vol inside the box, -inf outside, (N,)."""
         return np.where(self.contains(points), -math.log(self.volume), -np.inf)
+
+
+def map_box(scene_graph: SceneGraph) -> UniformBox:
+    """The map's box: the axis-aligned box enclosing every object's box, each side at least MIN_BOX_SIDE.
+
+    low = min_o min_corner(o), high = max_o max_corner(o) over the objects (the axis-aligned boxes that bound
+    their yawed boxes; regions do not count), grown by `UniformBox.around`: the evaluation's no-language
+    baseline, and the box meant for the sensor's broad term. A map without objects gets the unit box at the
+    origin, as `SceneGraph.bounds` does.
+    """
+    if not scene_graph.objects:
+        return UniformBox(np.full(3, -0.5), np.full(3, 0.5))
+    low = np.min([o.min_corner for o in scene_graph.objects], axis=0)
+    high = np.max([o.max_corner for o in scene_graph.objects], axis=0)
+    return UniformBox.around(low, high)
 
 
 def _empty(*shape: int) -> np.ndarray:
