@@ -19,7 +19,7 @@ from app.evaluation.metrics import (
     nees,
     rmse,
 )
-from app.grounding.mixture import Gaussian, GaussianMixture
+from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox
 
 CORRELATED = np.array([[0.5, 0.1, 0.0], [0.1, 0.3, -0.05], [0.0, -0.05, 0.2]])
 
@@ -127,3 +127,37 @@ def test_gaussian_summary_collects_the_metrics():
     assert summary["rmse"] == pytest.approx(math.sqrt(2.5))
     assert summary["anees"] == pytest.approx(2.5)
     assert summary["nll_mean"] == pytest.approx(0.5 * (2.5 + 3 * math.log(2 * math.pi)))
+
+
+def _with_boxes() -> tuple[GaussianMixture, GaussianMixture]:
+    """A Gaussian core under a broad box (30% of the mass, most of it on a plateau), and a box-only prior."""
+    box = UniformBox(np.array([-3.0, -3.0, 0.0]), np.array([3.0, 3.0, 2.0]))
+    core = GaussianMixture.of(Gaussian(np.array([0.5, 0.0, 1.0]), 0.05 * np.eye(3)))
+    only = GaussianMixture.from_components([], [], boxes=[box], box_weights=[1.0])
+    return core.with_background(0.3, box), only
+
+
+@pytest.mark.parametrize("which", [0, 1], ids=["gaussian-and-box", "box-only"])
+def test_hdr_coverage_of_a_mixture_with_uniform_boxes_is_the_nominal_mass(which: int) -> None:
+    """On a plateau p(X) has an atom: the level set {p >= tau_m} alone would hold more than m."""
+    rng = np.random.default_rng(5)
+    mixture = _with_boxes()[which]
+    masses = (0.5, 0.9, 0.95)
+    draws = mixture.logpdf(mixture.sample(20_000, rng))
+    assert np.mean(draws == draws.min()) > 0.15  # exact ties beyond the 0.9 and 0.95 levels
+    targets = mixture.sample(4000, rng)
+    covered = hdr_coverage(mixture, targets, rng, masses=masses, n_samples=40_000)
+    # Binomial std error at n = 4000 is <= 0.008 (plus the thresholds' own Monte Carlo error); ~4 of them.
+    np.testing.assert_allclose(covered.mean(axis=0), masses, atol=0.035)
+    # One uniform draw per target: the regions stay nested, the 0.5 region inside the 0.9 one and so on.
+    assert np.all(covered[:, 0] <= covered[:, 1]) and np.all(covered[:, 1] <= covered[:, 2])
+
+
+def test_hdr_coverage_outside_every_box_and_at_the_peak() -> None:
+    mixture, only = _with_boxes()
+    rng = np.random.default_rng(6)
+    outside = np.array([[10.0, 0.0, 1.0]])  # p(y) = 0
+    assert not hdr_coverage(only, outside, rng).any()
+    assert not hdr_coverage(mixture, outside, rng).any()
+    # The core's mean is the mode, inside the HDR of every mass whatever the plateau does.
+    assert hdr_coverage(mixture, np.array([[0.5, 0.0, 1.0]]), rng).all()

@@ -23,6 +23,8 @@ from app.grounding.mixture import GaussianMixture
 
 _LOG_2PI = math.log(2.0 * math.pi)
 DEFAULT_MASSES = (0.5, 0.9, 0.95)
+#: Log densities closer than this (nats) are one level: a plateau's points agree only to rounding.
+_TIE_NATS = 1e-9
 
 
 def _as_batch(means: np.ndarray, covariances: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -85,8 +87,15 @@ def hdr_thresholds(
     With x_1..x_S ~ p, tau_m is the (1 - m)-quantile of log p(x_s): a fraction m of the samples (so of the
     probability mass) has density at or above it. Returned as log densities.
     """
-    log_density = mixture.logpdf(mixture.sample(n_samples, rng))  # (S,)
-    return np.quantile(log_density, 1.0 - np.asarray(masses, dtype=np.float64))
+    return _sampled_levels(mixture, masses, rng, n_samples)[1]
+
+
+def _sampled_levels(
+    mixture: GaussianMixture, masses: Sequence[float], rng: np.random.Generator, n_samples: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(log p(x_s) of S draws x_s ~ p, their (1 - m)-quantiles tau_m); shapes (S,) and (len(masses),)."""
+    log_density = mixture.logpdf(mixture.sample(n_samples, rng))
+    return log_density, np.quantile(log_density, 1.0 - np.asarray(masses, dtype=np.float64))
 
 
 def hdr_coverage(
@@ -96,13 +105,30 @@ def hdr_coverage(
     masses: Sequence[float] = DEFAULT_MASSES,
     n_samples: int = 20_000,
 ) -> np.ndarray:
-    """Whether each target lies in the mixture's HDR of mass m (p(y) >= tau_m); bool (M, len(masses)).
+    """Whether each target lies in the mixture's HDR of mass m; bool (M, len(masses)).
 
-    One set of Monte Carlo thresholds is drawn per call and shared by all `targets` (rows of an (M, 3) array).
+    A density that is constant on a set of positive mass (a uniform box where the Gaussians have vanished)
+    puts an atom in the law of p(X): {p >= tau_m} can then hold more than m, so the level set alone would
+    over-cover. The HDR of mass m is made exact by randomising on the tie (the "plateau" p = tau_m):
+
+        a_m = P(p(X) > tau_m),   t_m = P(p(X) = tau_m)      (Monte Carlo, from the same draws as tau_m)
+        y covered  iff  p(y) > tau_m,  or  p(y) = tau_m and u_y < (m - a_m) / t_m,   u_y ~ U(0, 1)
+
+    so P(covered) = a_m + t_m (m - a_m) / t_m = m for y ~ p. Without ties t_m is about 1/S and the rule is
+    p(y) >= tau_m. One u_y per target serves every mass, so the regions stay nested. Densities within
+    `_TIE_NATS` of each other count as equal: identical plateaus agree only to rounding. One set of draws
+    per call is shared by all `targets` (rows of an (M, 3) array).
     """
-    thresholds = hdr_thresholds(mixture, masses, rng, n_samples)  # (K,)
+    log_density, thresholds = _sampled_levels(mixture, masses, rng, n_samples)  # (S,), (K,)
+    tied = np.abs(log_density[:, None] - thresholds[None, :]) <= _TIE_NATS  # (S, K)
+    above = np.mean((log_density[:, None] > thresholds[None, :]) & ~tied, axis=0)  # (K,) a_m
+    at = np.mean(tied, axis=0)  # (K,) t_m
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(at > 0, np.clip((np.asarray(masses) - above) / at, 0.0, 1.0), 1.0)  # (K,)
     log_p = mixture.logpdf(np.asarray(targets, dtype=np.float64).reshape(-1, 3))  # (M,)
-    return log_p[:, None] >= thresholds[None, :]
+    on_tie = np.abs(log_p[:, None] - thresholds[None, :]) <= _TIE_NATS  # (M, K)
+    draw = rng.uniform(size=(len(log_p), 1))  # (M, 1): u_y
+    return np.where(on_tie, draw < share[None, :], log_p[:, None] > thresholds[None, :])
 
 
 def gaussian_summary(means: np.ndarray, covariances: np.ndarray, targets: np.ndarray) -> dict[str, float]:
