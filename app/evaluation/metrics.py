@@ -5,11 +5,12 @@ Pure functions over arrays, one equation each:
     error_i = ||mu_i - y_i||_2                                   RMSE = sqrt(mean_i error_i^2)
     NLL_i   = 1/2 (log|Sigma_i| + NEES_i + 3 log 2 pi)           (nats)
     NEES_i  = (y_i - mu_i)^T Sigma_i^-1 (y_i - mu_i)             ANEES = mean_i NEES_i
-    mixture NLL = -log sum_k w_k N(y; mu_k, Sigma_k)
+    mixture NLL = -log [ sum_k w_k N(y; mu_k, Sigma_k) + sum_b v_b U(y; box_b) ]
 
 For a calibrated 3-D Gaussian, NEES ~ chi^2(3), so ANEES = 3; above 3 is overconfident, below 3 is
 underconfident. Highest-density-region coverage checks a whole mixture: the HDR of mass m is
-{x : p(x) >= tau_m} with P(p(X) >= tau_m) = m, and a calibrated predictor covers its targets at rate m.
+{x : p(x) >= tau_m} with P(p(X) >= tau_m) = m, and a calibrated predictor covers its targets at rate m
+(on a uniform box's plateau the level set is split at random to hold exactly m: `hdr_coverage`).
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ def gaussian_nll(means: np.ndarray, covariances: np.ndarray, targets: np.ndarray
 
 
 def mixture_nll(mixture: GaussianMixture, target: np.ndarray) -> float:
-    """-log sum_k w_k N(y; mu_k, Sigma_k), nats."""
+    """-log p(y) of the whole mixture, Gaussians and uniform boxes, nats (+inf where p(y) = 0)."""
     return float(-mixture.logpdf(np.asarray(target, dtype=np.float64).reshape(1, 3))[0])
 
 
@@ -85,7 +86,8 @@ def hdr_thresholds(
     """Monte Carlo density levels tau_m of the highest-density regions of mass m; shape (len(masses),).
 
     With x_1..x_S ~ p, tau_m is the (1 - m)-quantile of log p(x_s): a fraction m of the samples (so of the
-    probability mass) has density at or above it. Returned as log densities.
+    probability mass) has density at or above it (more, where p is constant on a set of positive mass: see
+    `hdr_coverage`). Returned as log densities.
     """
     return _sampled_levels(mixture, masses, rng, n_samples)[1]
 
