@@ -25,12 +25,14 @@ from app.evaluation.static import (
     evaluate_static,
     expected_calibration_error,
     mixture_coverage,
+    no_language_nll,
     reliability_bins,
     true_hypothesis_nll,
+    uniform_weights_mixture,
 )
 from app.grounding.geometric import FixedGrounder
 from app.grounding.hypotheses import Hypothesis, Proposal, UtteranceParse
-from app.grounding.mixture import Gaussian, GaussianMixture
+from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, map_box
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph
 from tests.fake_llm_server import FakeLLMServer, Reply
@@ -352,6 +354,235 @@ def test_per_case_failures_are_counted_not_fatal() -> None:
     assert metrics["flaky"]["failures"]["count"] == 1
     assert "case-1: RuntimeError: endpoint hiccup" in metrics["flaky"]["failures"]["examples"][0]
     assert metrics["fixed"]["overall"]["n"] == 3 and metrics["fixed"]["failures"]["count"] == 0
+
+
+# --- the no-language baseline and the served densities -------------------------------------------------
+
+# ROOM's object boxes: t1 x [0.5, 1.5], y [-0.3, 0.3]; t2 x [-3.6, -2.4], y [1.6, 2.4]; s1 x [2, 4],
+# y [-2.45, -1.55]; all z [0, 0.8]. The region (10 x 10 x 3) does not count.
+ROOM_BOX_VOLUME = (4.0 + 3.6) * (2.4 + 2.45) * 0.8
+
+
+def test_map_box_encloses_the_yawed_object_boxes_and_not_the_regions() -> None:
+    half = 1.5 / math.sqrt(2.0)  # a 2 x 1 box turned by 45 degrees: half extent (2 + 1) / 2 cos 45 per axis
+    scene = SceneGraph.model_validate(
+        {
+            "regions": [{"id": "r0", "name": "hall", "center": [0, 0, 2], "size": [20, 20, 5]}],
+            "objects": [
+                {"id": "a", "label": "desk", "center": [0, 0, 0.5], "size": [2, 1, 1], "yaw": math.pi / 4},
+                {"id": "b", "label": "box", "center": [4, 0, 0.25], "size": [1, 1, 0.5], "region_id": "r0"},
+            ],
+        }
+    )
+    box = map_box(scene)
+    np.testing.assert_allclose(box.low, [-half, -half, 0.0])
+    np.testing.assert_allclose(box.high, [4.5, half, 1.0])
+    volume = (4.5 + half) * (2 * half) * 1.0
+    assert box.volume == pytest.approx(volume)
+    assert no_language_nll(scene, np.array([1.0, 0.0, 0.5])) == pytest.approx(math.log(volume))
+    assert map_box(ROOM).volume == pytest.approx(ROOM_BOX_VOLUME)
+
+
+def test_map_box_of_a_flat_scene_is_grown_to_a_tenth_of_a_metre() -> None:
+    scene = SceneGraph.model_validate(
+        {
+            "objects": [
+                {"id": "a", "label": "rug", "center": [0, 0, 0.01], "size": [2, 1, 0.02]},
+                {"id": "b", "label": "mat", "center": [3, 0, 0.01], "size": [1, 1, 0.02]},
+            ]
+        }
+    )
+    box = map_box(scene)
+    np.testing.assert_allclose(box.low, [-1.0, -0.5, -0.04])  # z [0, 0.02] grown about its centre 0.01
+    np.testing.assert_allclose(box.high, [3.5, 0.5, 0.06])
+    assert box.volume == pytest.approx(4.5 * 1.0 * 0.1)
+    assert no_language_nll(scene, np.array([0.0, 0.0, 0.05])) == pytest.approx(math.log(0.45))
+    assert no_language_nll(scene, np.array([0.0, 0.0, 0.07])) == math.inf  # above the grown box
+    assert map_box(SceneGraph()).volume == pytest.approx(1.0)  # no object: the unit box
+
+
+def test_better_than_uniform_counts_and_a_target_outside_the_map_box() -> None:
+    near = np.array([0.0, 0.0, 0.0])
+    far = np.array([0.0, 0.0, 3.0])  # 3 m off along z (variance 0.05): NLL about 90 nats
+    specs = [  # (target, the grounder's mean minus the target, relation)
+        (np.array([1.0, 0.0, 0.4]), near, "on"),
+        (np.array([-3.0, 2.0, 0.7]), near, "on"),
+        (np.array([3.0, -2.0, 0.2]), far, "near"),
+        (np.array([3.0, -2.0, 0.5]), near, "near"),
+        (np.array([1.0, 0.0, 0.9]), near, "on"),  # above every object box: U(y) = 0
+    ]
+    cases = [make_case(i, y, ["t1"], r, ambiguity=1) for i, (y, _, r) in enumerate(specs)]
+    means = {c.utterance: y + d for c, (y, d, _) in zip(cases, specs, strict=True)}
+    result = evaluate_static(cases, [KnownGaussianGrounder(means)])
+    log_volume = math.log(ROOM_BOX_VOLUME)
+    nll = [-multivariate_normal(y + d, COVARIANCE).logpdf(y) for y, d, _ in specs]
+    assert nll[0] < log_volume < nll[2]  # the near guesses beat no language, the far one does not
+    overall = result.metrics["known"]["overall"]
+    assert overall["better_than_uniform"] == pytest.approx(4 / 5)  # the outside case counts as better
+    assert overall["uniform_outside"] == 1
+    assert overall["uniform_nll"] == pytest.approx(log_volume)  # the mean over the four inside the box
+    excess = [v - log_volume for v in nll[:4]]
+    assert overall["nll_minus_uniform"] == pytest.approx(np.mean(excess))
+    assert overall["worst_excess_over_uniform"] == pytest.approx(nll[2] - log_volume)
+    per_relation = result.metrics["known"]["per_relation"]
+    on, by_near = per_relation["on"], per_relation["near"]
+    assert on["better_than_uniform"] == 1.0 and on["uniform_outside"] == 1
+    assert on["worst_excess_over_uniform"] == pytest.approx(max(excess[:2]))
+    assert by_near["better_than_uniform"] == 0.5 and by_near["uniform_outside"] == 0
+    assert result.metrics["known"]["per_ambiguity"]["1"]["better_than_uniform"] == pytest.approx(4 / 5)
+    rows = result.per_case
+    assert rows[0]["uniform_nll"] == pytest.approx(log_volume) and rows[4]["uniform_nll"] is None
+    assert [r["known"]["better_than_uniform"] for r in rows] == [True, True, False, True, True]
+
+
+def moment_matched(
+    weights: list[float], means: list[np.ndarray], covs: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """mu = sum w_k mu_k, Sigma = sum w_k (Sigma_k + mu_k mu_k^T) - mu mu^T, written out."""
+    mu = sum(w * m for w, m in zip(weights, means, strict=True))
+    second = sum(w * (c + np.outer(m, m)) for w, m, c in zip(weights, means, covs, strict=True))
+    return mu, second - np.outer(mu, mu)
+
+
+class CoreAndTailGrounder:
+    """Each hypothesis's density: a tight core at the anchor's centre + 0.3 m and a wide tail below it."""
+
+    name = "core-tail"
+    version = "1"
+    core, tail = np.eye(3) * 0.01, np.eye(3) * 0.5
+    offset, drop = np.array([0.3, 0.0, 0.0]), np.array([0.0, 0.0, -0.5])
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "version": self.version, "config": {}, "checksum": None}
+
+    def density(self, scene_graph: SceneGraph, h: Hypothesis) -> GaussianMixture:
+        centre = np.asarray(scene_graph.object(h.anchor_ids[0]).center) + self.offset
+        return GaussianMixture.from_components(
+            [0.7, 0.3], [Gaussian(centre, self.core), Gaussian(centre + self.drop, self.tail)]
+        )
+
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
+        return [self.density(scene_graph, h) for h in hypotheses]
+
+
+def test_nees_and_point_of_a_two_component_density_are_its_moment_matched_ones() -> None:
+    target = np.array([1.1, 0.2, 0.5])
+    case = make_case(0, target, ["t1"], "on", ambiguity=2)
+    g = CoreAndTailGrounder()
+    centre = np.array([1.0, 0.0, 0.4]) + g.offset
+    mu, sigma = moment_matched([0.7, 0.3], [centre, centre + g.drop], [g.core, g.tail])
+    expected = float((target - mu) @ np.linalg.inv(sigma) @ (target - mu))
+    core_only = float((target - centre) @ np.linalg.inv(g.core) @ (target - centre))
+    assert abs(expected - core_only) > 1.0  # one component's NEES (the old score) would be far off
+
+    gt = evaluate_static([case], [g]).metrics["core-tail"]["overall"]
+    assert gt["anees"] == pytest.approx(expected, rel=1e-9)
+    assert gt["anees_full"] == pytest.approx(expected, rel=1e-9)  # one hypothesis: the whole mixture
+    assert gt["rmse"] == pytest.approx(float(np.linalg.norm(mu - target)))
+
+    # With a proposer (t1 at 0.8, t2 at 0.2): NEES of t1's density, the point its mean (the heavier one),
+    # NEES_full of the whole two-hypothesis mixture.
+    result = evaluate_static([case], [g], ScriptedProposer(true_weight=0.8))
+    scored = result.metrics["core-tail"]["overall"]
+    assert scored["anees"] == pytest.approx(expected, rel=1e-9)
+    assert scored["rmse"] == pytest.approx(float(np.linalg.norm(mu - target)))
+    other = np.array([-3.0, 2.0, 0.4]) + g.offset
+    full_mu, full_sigma = moment_matched(
+        [0.56, 0.24, 0.14, 0.06],
+        [centre, centre + g.drop, other, other + g.drop],
+        [g.core, g.tail, g.core, g.tail],
+    )
+    full = float((target - full_mu) @ np.linalg.inv(full_sigma) @ (target - full_mu))
+    assert scored["anees_full"] == pytest.approx(full, rel=1e-9)
+    assert result.per_case[0]["core-tail"]["nees_full"] == pytest.approx(full, rel=1e-9)
+    assert result.per_case[0]["core-tail"]["components"] == 4
+
+
+def test_uniform_weights_keep_the_sensors_own_box_and_spread_the_rest_evenly() -> None:
+    g = CoreAndTailGrounder()
+    densities = [g.density(ROOM, Hypothesis((a,), Relation.ON)) for a in ("t1", "t2")]
+    box = map_box(ROOM)
+    served = GaussianMixture.combine([0.8, 0.2], densities).with_background(0.1, box)
+    even = uniform_weights_mixture(served, densities)
+    points = np.array([[1.3, 0.0, 0.4], [-2.7, 2.0, 0.0], [3.0, -2.0, 0.5], [0.0, 0.0, 2.0]])
+    p = [np.exp(d.logpdf(points)) for d in densities]
+    expected = 0.9 * (0.5 * p[0] + 0.5 * p[1]) + 0.1 * np.exp(box.logpdf(points))
+    np.testing.assert_allclose(np.exp(even.logpdf(points)), expected, rtol=1e-12)
+    assert uniform_weights_mixture(served, []) is served
+    with pytest.raises(ValueError, match="Gaussians"):
+        uniform_weights_mixture(served, densities[:1])
+
+
+class ProposerOnly:
+    """Any utterance: t1 at 0.6 and t2 at 0.4 (the case itself names no anchor, like Nr3D's)."""
+
+    name = "proposer-only"
+
+    def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal:
+        parse = UtteranceParse(target="cup", relation=Relation.NEAR, anchor_phrases=("table",))
+        return Proposal(
+            parse, (Hypothesis(("t1",), Relation.NEAR, 0.6), Hypothesis(("t2",), Relation.NEAR, 0.4))
+        )
+
+
+def test_a_case_without_true_hypotheses_is_scored_on_the_full_mixture() -> None:
+    target = np.array([1.2, 0.1, 0.3])
+    case = make_case(0, target, ["t1"], "near").model_copy(update={"hypotheses": []})
+    g = CoreAndTailGrounder()
+    skipped = evaluate_static([case], [g])  # --proposer gt needs true hypotheses
+    assert skipped.metrics["run"]["skipped_without_truth"] == 1 and skipped.per_case == []
+
+    result = evaluate_static([case], [g], ProposerOnly())
+    overall = result.metrics["core-tail"]["overall"]
+    densities = [g.density(ROOM, Hypothesis((a,), Relation.NEAR)) for a in ("t1", "t2")]
+    served = GaussianMixture.combine([0.6, 0.4], densities)
+    assert overall["n"] == 1 and overall["anees"] is None and overall["unmatched"] == 1
+    assert overall["nll"] == pytest.approx(float(-served.logpdf(target)[0]))
+    assert overall["rmse"] == pytest.approx(float(np.linalg.norm(densities[0].mean() - target)))
+    mu, sigma = served.mean(), served.covariance()
+    assert overall["anees_full"] == pytest.approx(float((target - mu) @ np.linalg.inv(sigma) @ (target - mu)))
+    assert overall["better_than_uniform"] == 1.0
+    assert result.metrics["core-tail"]["per_relation"].keys() == {"unknown"}
+    assert result.metrics["referent"]["overall"]["n"] == 0  # no truth to score the weights against
+
+
+class CoreUnderBoxGrounder:
+    """Answers, for case i, a Gaussian core at the case's mean under a broad box holding 40% of the mass."""
+
+    name = "core-box"
+    version = "1"
+    box = UniformBox(np.array([-4.0, -3.0, 0.0]), np.array([4.0, 3.0, 2.0]))
+
+    def __init__(self, means: dict[str, np.ndarray]) -> None:
+        self.means = means
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "version": self.version, "config": {}, "checksum": None}
+
+    def density(self, mean: np.ndarray) -> GaussianMixture:
+        return GaussianMixture.of(Gaussian(mean, COVARIANCE)).with_background(0.4, self.box)
+
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
+        return [self.density(self.means[utterance]) for _ in hypotheses]
+
+
+def test_a_box_holding_density_is_covered_at_the_nominal_rate_through_the_evaluation() -> None:
+    """Targets drawn from the served density itself: coverage m at every mass m (one Gaussian and a box
+    must not take the single Gaussian's exact chi^2 path, nor count the whole plateau in)."""
+    rng = np.random.default_rng(11)
+    n = 1500
+    means = rng.uniform([-1, -1, 0.5], [1, 1, 1.5], size=(n, 3))
+    grounder = CoreUnderBoxGrounder({})
+    targets = np.stack([grounder.density(m).sample(1, rng)[0] for m in means])
+    cases = [make_case(i, targets[i], ["t1"], "near", ambiguity=1) for i in range(n)]
+    grounder.means = {c.utterance: means[i] for i, c in enumerate(cases)}
+    overall = evaluate_static(cases, [grounder], hdr_samples=2000).metrics["core-box"]["overall"]
+    for m in DEFAULT_MASSES:  # binomial std error <= 0.013 at n = 1500, plus the thresholds' own wobble
+        assert overall["coverage"][str(m)] == pytest.approx(m, abs=0.05)
 
 
 # --- the CLI ------------------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ from app.data.cases import read_cases
 from app.errors import NotFound
 from app.evaluation.metrics import anees, nees
 from app.grounding.hypotheses import Hypothesis
+from app.grounding.parsing import target_noun
 from app.grounding.relations import Relation
 from app.lsm.features import (
     PackedSamples,
@@ -27,6 +28,7 @@ from app.lsm.features import (
     make_sample,
     pair_features,
     percentile,
+    rotation_z,
 )
 from app.lsm.grounder import DEFAULT_MODEL_DIR, LSMGrounder
 from app.lsm.model import (
@@ -39,7 +41,7 @@ from app.lsm.model import (
     save_checkpoint,
 )
 from app.lsm.text_encoder import MINILM_SHA256, TextEncoder, file_sha256
-from app.lsm.train import apply_calibration, fit_calibration, predict
+from app.lsm.train import Densities, apply_calibration, fit_calibration, predict
 from app.scene_graph.model import SceneGraph
 
 CASES = Path(__file__).parent / "resources" / "lsm" / "cases.jsonl"
@@ -79,7 +81,7 @@ def packed(cases) -> PackedSamples:
             c.scene_graph,
             c.hypotheses[0].anchor_ids,
             c.hypotheses[0].relation,
-            c.utterance,
+            c.target.label,
             cfg,
             c.target.position,
         )
@@ -115,6 +117,11 @@ def test_forward_shapes_and_positive_definite_covariances(packed):
     cov = out.covariance
     assert torch.allclose(cov, cov.transpose(-1, -2))
     assert torch.all(torch.linalg.eigvalsh(cov.double()) > 0)
+    # The tail: wider than the core (Sigma + Delta), with a weight below a_max.
+    tail = out.tail_covariance
+    assert tail is not None and out.tail_weight is not None
+    assert torch.all(torch.linalg.eigvalsh((tail - cov).double()) > 0)
+    assert torch.all((out.tail_weight > 0) & (out.tail_weight < 0.5))
     # The sigma floor: diag(L_w) = s * (softplus + 0.05) >= 0.05 s.
     floor = 0.05 * batch.region_scale
     assert torch.all(torch.diagonal(out.chol, dim1=-2, dim2=-1) >= floor - 1e-6)
@@ -135,7 +142,7 @@ def test_padding_does_not_change_predictions(packed):
 
 
 def test_loss_matches_hand_computed_gaussian_nll_plus_l1():
-    model = _tiny_model()
+    model = _tiny_model(tail=False)
     mean = torch.tensor([[0.5, -1.0, 2.0], [0.0, 0.0, 0.0]])
     chol = torch.tensor(
         [
@@ -154,6 +161,23 @@ def test_loss_matches_hand_computed_gaussian_nll_plus_l1():
     nees = 1.0 + 1.0 / 4.0 + 0.0625 / 0.25
     nll = 0.5 * (math.log(1.0 * 4.0 * 0.25) + nees + 3 * math.log(2 * math.pi))
     assert expected[1] == pytest.approx(nll + 2.25)
+
+
+def test_loss_of_the_core_and_tail_density_is_the_mixture_nll():
+    model = _tiny_model()
+    mean = torch.tensor([[0.5, -1.0, 2.0]])
+    chol = torch.tensor([[[0.3, 0.0, 0.0], [0.1, 0.4, 0.0], [-0.2, 0.05, 0.6]]])
+    tail_chol = torch.tensor([[[1.0, 0.0, 0.0], [0.2, 1.5, 0.0], [0.0, 0.1, 0.7]]])
+    weight = torch.tensor([0.2])
+    target = torch.tensor([[1.7, 0.6, 1.5]])
+    out = LSMOutput(mean, chol, tail_chol, weight)
+    core = (chol @ chol.transpose(-1, -2))[0].numpy()
+    wide = core + (tail_chol @ tail_chol.transpose(-1, -2))[0].numpy()
+    y, m = target[0].numpy(), mean[0].numpy()
+    density = 0.8 * multivariate_normal(m, core).pdf(y) + 0.2 * multivariate_normal(m, wide).pdf(y)
+    expected = -math.log(density) + np.abs(m - y).sum()
+    assert model.loss(out, target).item() == pytest.approx(expected, rel=1e-5)
+    np.testing.assert_allclose(out.moment_covariance()[0].numpy(), 0.8 * core + 0.2 * wide, rtol=1e-5)
 
 
 def test_one_optimizer_step_lowers_the_loss_on_a_fixed_batch(packed):
@@ -200,42 +224,135 @@ def test_make_sample_keeps_anchors_first_and_the_nearest_objects(cases):
     cfg = LSMConfig(**TINY)
     truth = case.hypotheses[0]
     sample = make_sample(
-        case.scene_graph, truth.anchor_ids, truth.relation, case.utterance, cfg, case.target.position
+        case.scene_graph, truth.anchor_ids, truth.relation, "coffee table", cfg, case.target.position
     )
+    assert sample.text == "the coffee table between the sofa and the tv stand"
     assert len(sample.labels) == cfg.max_objects
     assert sample.labels[:2] == ("sofa", "tv stand")
     assert sample.roles.tolist() == [ROLE_ANCHOR] * 2 + [ROLE_OTHER] * (cfg.max_objects - 2)
     anchors = np.array([case.scene_graph.object(i).center for i in truth.anchor_ids])
     dist = np.array([np.min(np.linalg.norm(anchors - o.center, axis=1)) for o in case.scene_graph.objects])
-    kept_others = np.min(np.linalg.norm(anchors[None] - sample.centers[2:, None], axis=-1), axis=1)
+    world = np.array([sample.to_world(c.astype(np.float64), np.eye(3))[0] for c in sample.centers])
+    kept_others = np.min(np.linalg.norm(anchors[None] - world[2:, None], axis=-1), axis=1)
     dropped = np.sort(dist)[cfg.max_objects :]
-    assert kept_others.max() <= dropped.min()
-    # The region frame: centred on the anchors' midpoint, reaching the margin beyond their joint box.
+    assert kept_others.max() <= dropped.min() + 1e-5
+    # The local frame: its origin the anchors' midpoint, the region reaching the margin beyond their joint
+    # box (an axis-aligned scene keeps axis-aligned boxes: the frame turns by quarter turns only).
     sofa, tv_stand = (case.scene_graph.object(i) for i in truth.anchor_ids)
     midpoint = 0.5 * (np.asarray(sofa.center) + np.asarray(tv_stand.center))
-    np.testing.assert_allclose(sample.region_shift, midpoint, atol=1e-6)
-    low = np.minimum(sofa.min_corner, tv_stand.min_corner)
-    high = np.maximum(sofa.max_corner, tv_stand.max_corner)
-    reach = np.maximum(high - midpoint, midpoint - low) + np.array([1.0, 1.0, 1.5])
-    np.testing.assert_allclose(sample.region_scale, reach, atol=1e-5)
+    np.testing.assert_allclose(sample.origin, midpoint, atol=1e-9)
+    assert sample.yaw % (math.pi / 2) == pytest.approx(0.0, abs=1e-12) or sample.yaw % (math.pi / 2) == (
+        pytest.approx(math.pi / 2, abs=1e-12)
+    )
+    np.testing.assert_allclose(sample.region_shift, 0.0)
+    low = np.minimum(sofa.min_corner, tv_stand.min_corner) - midpoint
+    high = np.maximum(sofa.max_corner, tv_stand.max_corner) - midpoint
+    turn = np.abs(np.round(rotation_z(sample.yaw)[:2, :2]))
+    reach = np.maximum(high, -low)
+    reach[:2] = turn.T @ reach[:2]
+    np.testing.assert_allclose(sample.region_scale, reach + np.array([1.0, 1.0, 1.5]), atol=1e-5)
+    np.testing.assert_allclose(
+        sample.to_world(sample.target.astype(np.float64), np.eye(3))[0], case.target.position, atol=1e-5
+    )
 
 
 def test_ordinal_relations_get_a_scene_wide_frame(cases):
     case = cases[0]
     cfg = LSMConfig(**TINY)
     anchor = case.hypotheses[0].anchor_ids
-    near = make_sample(case.scene_graph, anchor, Relation.NEAR, case.utterance, cfg)
-    farthest = make_sample(case.scene_graph, anchor, Relation.FARTHEST, case.utterance, cfg)
-    np.testing.assert_allclose(farthest.region_shift, near.region_shift)
-    low, high = case.scene_graph.bounds()
-    assert np.all(farthest.region_shift - farthest.region_scale <= low + 1e-5)
-    assert np.all(farthest.region_shift + farthest.region_scale >= high - 1e-5)
+    near = make_sample(case.scene_graph, anchor, Relation.NEAR, "remote", cfg)
+    farthest = make_sample(case.scene_graph, anchor, Relation.FARTHEST, "remote", cfg)
+    np.testing.assert_allclose(farthest.origin, near.origin)
+    assert np.all(-farthest.region_scale <= farthest.scene_low + 1e-5)
+    assert np.all(farthest.region_scale >= farthest.scene_high - 1e-5)
     assert np.all(farthest.region_scale >= near.region_scale)
+
+
+def test_a_region_hypothesis_is_anchored_on_the_region_box(cases):
+    case = cases[0]
+    cfg = LSMConfig(**TINY)
+    region = case.scene_graph.regions[0] if case.scene_graph.regions else None
+    sample = make_sample(
+        case.scene_graph, (), Relation.IN, "remote", cfg, region_id=region.id if region else None
+    )
+    assert sample.roles[0] == ROLE_ANCHOR and (sample.roles[1:] == ROLE_OTHER).all()
+    low = np.min([o.min_corner for o in case.scene_graph.objects], axis=0)
+    high = np.max([o.max_corner for o in case.scene_graph.objects], axis=0)
+    expected_centre = region.center if region else 0.5 * (low + high)
+    np.testing.assert_allclose(sample.origin, expected_centre, atol=1e-9)
+    assert sample.text.startswith("the remote in the ")
 
 
 def test_make_sample_rejects_unknown_anchor(cases):
     with pytest.raises(NotFound, match="no-such-object"):
         make_sample(cases[0].scene_graph, ["no-such-object"], Relation.ON, "x", LSMConfig(**TINY))
+
+
+def _moved(scene_graph: SceneGraph, yaw: float, offset: np.ndarray) -> SceneGraph:
+    """The whole scene turned by `yaw` about the origin and shifted by `offset` (regions dropped: an
+    axis-aligned region box does not stay one under a turn)."""
+    turn = rotation_z(yaw)
+    objects = [
+        o.model_copy(
+            update={
+                "center": (turn @ np.asarray(o.center) + offset).tolist(),
+                "yaw": o.yaw + yaw,
+                "region_id": None,
+            }
+        )
+        for o in scene_graph.objects
+    ]
+    return scene_graph.model_copy(update={"objects": objects, "regions": []})
+
+
+@pytest.mark.parametrize(
+    ("yaw", "offset"),
+    [
+        (0.3, (5.0, -3.0, 0.0)),
+        (2.0, (120.0, 40.0, -1.2)),
+        (-1.2, (0.0, 0.0, 3.1)),
+        (math.pi / 2, (1.0, 1.0, 1.0)),
+    ],
+)
+def test_predictions_move_with_the_scene(tiny_checkpoint, encoder, cases, yaw, offset):
+    """Turning the whole scene by any yaw, shifting it and raising its floor moves every density by the same
+    rigid motion: the model sees only the local frame."""
+    grounder = LSMGrounder.load(tiny_checkpoint, encoder=encoder)
+    case = cases[5]
+    still = _moved(case.scene_graph, 0.0, np.zeros(3))
+    moved = _moved(case.scene_graph, yaw, np.asarray(offset))
+    sofa, tv_stand = case.hypotheses[0].anchor_ids
+    hypotheses = [
+        Hypothesis((sofa, tv_stand), Relation.BETWEEN),
+        Hypothesis((sofa,), Relation.ON),
+        Hypothesis((tv_stand,), Relation.FARTHEST),
+        Hypothesis((), Relation.IN),
+    ]
+    turn = rotation_z(yaw)
+    for before, after in zip(
+        grounder.ground(still, case.utterance, hypotheses),
+        grounder.ground(moved, case.utterance, hypotheses),
+        strict=True,
+    ):
+        np.testing.assert_allclose(after.weights, before.weights, atol=1e-6)
+        np.testing.assert_allclose(after.means, before.means @ turn.T + np.asarray(offset), atol=1e-4)
+        np.testing.assert_allclose(after.covariances, turn @ before.covariances @ turn.T, atol=1e-6)
+
+
+def test_words_that_do_not_constrain_position_do_not_move_the_density(tiny_checkpoint, encoder, cases):
+    """The model reads the hypothesis ("the mug on the table"), not the rest of the utterance."""
+    grounder = LSMGrounder.load(tiny_checkpoint, encoder=encoder)
+    case = cases[5]
+    sofa, _ = case.hypotheses[0].anchor_ids
+    hypothesis = [Hypothesis((sofa,), Relation.ON)]
+    plain = grounder.ground(case.scene_graph, "the remote is on the sofa", hypothesis)[0]
+    for said in (
+        "the remote is on the sofa near the lamp",
+        "I think my black remote is on the sofa, you know",
+    ):
+        other = grounder.ground(case.scene_graph, said, hypothesis)[0]
+        assert np.abs(other.means - plain.means).max() < 0.05
+        np.testing.assert_allclose(other.covariances, plain.covariances, atol=1e-9)
 
 
 def test_pair_features_are_anchor_centric():
@@ -271,7 +388,7 @@ def tiny_checkpoint(tmp_path_factory) -> Path:
     return directory
 
 
-def test_grounder_returns_one_pd_gaussian_per_hypothesis(tiny_checkpoint, encoder, cases):
+def test_grounder_returns_one_core_and_tail_density_per_hypothesis(tiny_checkpoint, encoder, cases):
     grounder = LSMGrounder.load(tiny_checkpoint, encoder=encoder)
     case = cases[5]
     sofa, tv_stand = case.hypotheses[0].anchor_ids
@@ -280,12 +397,15 @@ def test_grounder_returns_one_pd_gaussian_per_hypothesis(tiny_checkpoint, encode
         Hypothesis(anchor_ids=(sofa,), relation=Relation.ON),
         Hypothesis(anchor_ids=(tv_stand,), relation=Relation.NEAR),
     ]
-    gaussians = [d.components[0] for d in grounder.ground(case.scene_graph, case.utterance, hypotheses)]
-    assert len(gaussians) == 3
-    for g in gaussians:
-        assert g.mean.shape == (3,) and np.all(np.isfinite(g.mean))
-        assert np.allclose(g.covariance, g.covariance.T)
-        assert np.all(np.linalg.eigvalsh(g.covariance) > 0)
+    densities = grounder.ground(case.scene_graph, case.utterance, hypotheses)
+    assert len(densities) == 3
+    for d in densities:
+        assert d.weights.shape == (2,) and d.weights.sum() == pytest.approx(1.0) and d.weights[1] < 0.5
+        np.testing.assert_allclose(d.means[0], d.means[1])
+        for g in d.components:
+            assert np.allclose(g.covariance, g.covariance.T)
+            assert np.all(np.linalg.eigvalsh(g.covariance) > 0)
+        assert np.all(np.linalg.eigvalsh(d.covariances[1] - d.covariances[0]) > -1e-9)
     assert grounder.ground(case.scene_graph, case.utterance, []) == []
     with pytest.raises(NotFound):
         grounder.ground(
@@ -296,22 +416,31 @@ def test_grounder_returns_one_pd_gaussian_per_hypothesis(tiny_checkpoint, encode
 def test_grounder_applies_calibration_and_matches_the_batched_evaluation_path(
     tiny_checkpoint, encoder, cases
 ):
-    """Served Gaussians = training-time predictions with Sigma scaled by c_r (between 4, others 2)."""
+    """Served densities = training-time predictions with every covariance scaled by c_r (between 4,
+    others 2)."""
     grounder = LSMGrounder.load(tiny_checkpoint, encoder=encoder)
     model, _ = load_checkpoint(tiny_checkpoint)
     samples, served = [], []
     for case in cases:
         truth = case.hypotheses[0]
         h = Hypothesis(anchor_ids=tuple(truth.anchor_ids), relation=truth.relation)
-        served.append(grounder.ground(case.scene_graph, case.utterance, [h])[0].components[0])
+        served.append(grounder.ground(case.scene_graph, case.utterance, [h])[0])
         samples.append(
-            make_sample(case.scene_graph, truth.anchor_ids, truth.relation, case.utterance, model.cfg)
+            make_sample(
+                case.scene_graph,
+                truth.anchor_ids,
+                truth.relation,
+                target_noun(case.utterance),
+                model.cfg,
+            )
         )
-    means, covs = predict(model, PackedSamples(samples, encoder.encode), batch_size=3)
-    for case, g, m, c in zip(cases, served, means, covs, strict=True):
+    predicted = predict(model, PackedSamples(samples, encoder.encode), samples, batch_size=3)
+    for k, (case, density) in enumerate(zip(cases, served, strict=True)):
         scale = 4.0 if case.hypotheses[0].relation is Relation.BETWEEN else 2.0
-        np.testing.assert_allclose(g.mean, m, atol=1e-4)
-        np.testing.assert_allclose(g.covariance, scale * c, rtol=1e-3, atol=1e-6)
+        np.testing.assert_allclose(density.means[0], predicted.means[k], atol=1e-4)
+        np.testing.assert_allclose(density.covariances[0], scale * predicted.core[k], rtol=1e-3, atol=1e-6)
+        np.testing.assert_allclose(density.covariances[1], scale * predicted.tail[k], rtol=1e-3, atol=1e-6)
+        np.testing.assert_allclose(density.weights[1], predicted.weights[k], atol=1e-6)
 
 
 def test_grounder_describe_names_the_weights(tiny_checkpoint, encoder):
@@ -337,6 +466,10 @@ def test_shipped_model_grounds_every_relation(encoder, cases):
         assert np.linalg.norm(g.mean - anchors.mean(axis=0)) < 3.0
 
 
+def _gaussians(means: np.ndarray, covs: np.ndarray) -> Densities:
+    return Densities(means, covs, covs, np.zeros(len(means)))
+
+
 def test_fit_calibration_brings_anees_to_three_and_shrinks_small_relations():
     rng = np.random.default_rng(5)
     n_big, n_small = 4000, 10
@@ -347,30 +480,59 @@ def test_fit_calibration_brings_anees_to_three_and_shrinks_small_relations():
     means = np.zeros((n, 3))
     covs = np.tile(true_cov / 4.0, (n, 1, 1))  # 4x overconfident
     covs[n_big:] *= 0.25  # "in" 16x overconfident, but only 10 cases
-    calibration = fit_calibration(means, covs, targets, relations, prior_cases=50.0)
-    assert calibration["per_relation"]["near"] == pytest.approx(4.0, rel=0.05)
-    scaled = apply_calibration(covs, relations, calibration)
-    assert anees(means[:n_big], scaled[:n_big], targets[:n_big]) == pytest.approx(3.0, rel=0.05)
-    # "in": own estimate ~16, pooled ~4; shrunk with 10 own cases against 50 pooled pseudo-cases.
+    calibration = fit_calibration(_gaussians(means, covs), targets, relations, prior_cases=50.0)
+    # For one Gaussian the NLL-optimal scale is ANEES / 3.
+    assert calibration["per_relation"]["near"] == pytest.approx(
+        nees(means[:n_big], covs[:n_big], targets[:n_big]).mean() / 3.0, rel=1e-4
+    )
+    scaled = apply_calibration(_gaussians(means, covs), relations, calibration)
+    assert anees(means[:n_big], scaled.core[:n_big], targets[:n_big]) == pytest.approx(3.0, rel=0.01)
+    # "in": own estimate ~16, pooled ~4; shrunk in log space with 10 own cases against 50 pooled pseudo-cases.
     own = nees(means[n_big:], covs[n_big:], targets[n_big:]).mean() / 3.0
     pooled = calibration["overall"]
-    expected = (10 * own + 50 * pooled) / 60
-    assert calibration["per_relation"]["in"] == pytest.approx(expected)
+    expected = math.exp((10 * math.log(own) + 50 * math.log(pooled)) / 60)
+    assert calibration["per_relation"]["in"] == pytest.approx(expected, rel=1e-3)
     assert pooled < calibration["per_relation"]["in"] < own
 
 
+def test_densities_score_a_calibrated_scale_mixture_at_nominal_coverage():
+    """Targets drawn from the core-and-tail density itself: coverage at every mass, moment ANEES 3."""
+    rng = np.random.default_rng(11)
+    n = 3000
+    core = np.tile(np.diag([0.04, 0.09, 0.01]), (n, 1, 1))
+    tail = core * 16.0
+    weights = np.full(n, 0.2)
+    in_tail = rng.uniform(size=n) < weights
+    noise = np.where(
+        in_tail[:, None],
+        rng.multivariate_normal(np.zeros(3), tail[0], size=n),
+        rng.multivariate_normal(np.zeros(3), core[0], size=n),
+    )
+    means = rng.normal(size=(n, 3))
+    densities = Densities(means, core, tail, weights)
+    covered = densities.coverage(means + noise, np.random.default_rng(1))
+    np.testing.assert_allclose(covered.mean(axis=0), [0.5, 0.9, 0.95], atol=0.03)
+    assert anees(means, densities.moment_covariances, means + noise) == pytest.approx(3.0, rel=0.08)
+
+
 def test_scene_arrays_match_the_scene_graph():
-    """Bounds (objects and regions), boxes and floor height on a real 60-object ScanNet room."""
+    """Boxes, the map's box and the floor height on a real 60-object ScanNet room; a turned copy of it
+    has the turn as its dominant yaw."""
     scene_file = Path(__file__).parent / "resources" / "scenes" / "scannet_scene0590_00.json"
     scene_graph = SceneGraph.model_validate_json(scene_file.read_text(encoding="utf-8"))
-    assert scene_graph.regions
     arrays = SceneArrays.of(scene_graph)
-    low, high = scene_graph.bounds()
-    np.testing.assert_allclose(arrays.bounds[0], low)
-    np.testing.assert_allclose(arrays.bounds[1], high)
-    np.testing.assert_allclose(arrays.sizes, [2.0 * o.half_extent for o in scene_graph.objects])
+    low = np.min([o.min_corner for o in scene_graph.objects], axis=0)
+    high = np.max([o.max_corner for o in scene_graph.objects], axis=0)
+    np.testing.assert_allclose(arrays.map_box[0], 0.5 * (low + high))
+    np.testing.assert_allclose(arrays.map_box[1], high - low)
+    np.testing.assert_allclose(arrays.dims, [o.size for o in scene_graph.objects])
     bottoms = [o.min_corner[2] for o in scene_graph.objects]
     assert arrays.floor_z == pytest.approx(np.percentile(bottoms, 10))
+    assert arrays.dominant_yaw == 0.0
+    turned = SceneArrays.of(_moved(scene_graph, 0.4, np.zeros(3)))
+    assert turned.dominant_yaw == pytest.approx(0.4)
+    np.testing.assert_allclose(turned.map_box[1], arrays.map_box[1], atol=1e-9)
+    assert turned.floor_z == pytest.approx(arrays.floor_z)
 
 
 @pytest.mark.parametrize("n", [1, 2, 7, 60, 151])

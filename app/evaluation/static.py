@@ -12,25 +12,43 @@ When a proposal holds no hypothesis (no anchor matched), the mixture is the sens
 with a `ground_mixture(scene_graph, utterance)` method (LLM-E2E) predicts the whole mixture itself and
 ignores the proposer.
 
-Metrics per method, for a case with target y and predicted mixture p(x) = sum_k w_k N(x; mu_k, Sigma_k):
+Metrics per method, for a case with target y and the served mixture p(x) = sum_h w_h p_h(x) (+ the
+sensor's own uniform terms), p_h the density of hypothesis h (a small mixture of Gaussians and uniform boxes)
+and mean(q), cov(q) the moment-matched mean and covariance of a density q:
 
-    NLL      = -log p(y)  (nats; mean over cases)
-    RMSE     = sqrt(mean_cases ||mu_point - y||^2)  (metres)
-    NEES     = (y - mu_m)^T Sigma_m^-1 (y - mu_m)          ANEES = mean NEES over the matched cases
-    coverage = fraction of cases with y in the HDR of mass m: {x : p(x) >= tau_m}, P(p(X) >= tau_m) = m
+    NLL       = -log p(y)  (nats; mean over cases)
+    RMSE      = sqrt(mean_cases ||x_point - y||^2)  (metres)
+    NEES      = (y - mean(p_m))^T cov(p_m)^-1 (y - mean(p_m))      ANEES = mean NEES over the matched cases
+    NEES_full = (y - mean(p))^T cov(p)^-1 (y - mean(p))            ANEES_full = mean over every case
+    coverage  = fraction of cases with y in the HDR of mass m: {x : p(x) >= tau_m}, P(p(X) >= tau_m) = m
 
-- The matched component m: with `--proposer gt`, the true hypothesis's (`hypotheses[0]`); with another
-  proposer, the heaviest component whose hypothesis holds the true anchors (same anchor set, relation not
-  compared); cases where none does are left out of ANEES and counted (`unmatched`). For a mixture-predicting
-  grounder, the component whose mean is nearest the true anchors' centroid (how `LLMEndToEndGrounder`
-  matches components to hypotheses).
-- The point mu_point: the matched component's mean with `--proposer gt`; otherwise the mean of the
-  highest-weight component (the mixture's best single guess; its mean sum_k w_k mu_k can lie between
-  anchors, where nothing is).
+- The matched hypothesis m: with `--proposer gt`, the true one (`hypotheses[0]`); with another proposer, the
+  heaviest hypothesis holding the true anchors (same anchor set, relation not compared); cases where none
+  does (every case without true hypotheses: Nr3D, ScanRefer) are left out of ANEES and counted
+  (`unmatched`), while NLL, coverage, RMSE and ANEES_full score them on the full mixture. For a
+  mixture-predicting grounder, m is the Gaussian whose mean is nearest the true anchors' centroid (how
+  `LLMEndToEndGrounder` matches components to hypotheses) and NEES is that Gaussian's.
+- The point x_point: mean(p_m) with `--proposer gt`; otherwise mean(p_h) of the heaviest hypothesis (the
+  mixture's best single guess; mean(p) can lie between anchors, where nothing is), mean(p) when there is no
+  hypothesis (the broad prior); for a mixture-predicting grounder, the matched (gt) or heaviest Gaussian's
+  mean.
 - Coverage: for a single Gaussian the HDR of mass m is exactly the ellipsoid NEES <= F^-1(m) (F the chi^2(3)
   CDF), so y is covered iff F(NEES) <= m; a mixture's thresholds tau_m are Monte Carlo
-  (`app.evaluation.metrics.hdr_coverage`, `hdr_samples` draws per case, seeded by (seed, case index)).
+  (`app.evaluation.metrics.hdr_coverage`, `hdr_samples` draws per case, seeded by (seed, case index), ties
+  on the plateaus of uniform boxes broken at random so that the region holds mass m exactly).
 - A calibrated 3-D predictor has ANEES 3 (above: overconfident) and coverage m at every mass m.
+
+Every NLL is read against the no-language baseline: the uniform density over the map's box U (the
+axis-aligned box enclosing every object box of the case's scene graph, each side at least 0.1 m;
+`app.grounding.mixture.map_box`), what one can say of the target without the utterance:
+
+    uniform_nll               = -log U(y) = log vol(U) if y in U, else +inf
+    better_than_uniform       = fraction of cases with NLL < uniform_nll
+    nll_minus_uniform         = mean (NLL - uniform_nll)      over the cases with y in U
+    worst_excess_over_uniform = max (NLL - uniform_nll)       over the cases with y in U
+
+`uniform_nll` of a group is its mean over the cases with y in U, `uniform_outside` counts the others
+(better than the baseline whatever the method says, since U(y) = 0 there).
 
 With a proposer other than `gt`, the weights themselves are scored ("referent"), each hypothesis being
 correct when it holds the true anchors:
@@ -43,8 +61,8 @@ correct when it holds the true anchors:
                           their fraction correct
 
 and `uniform_weights_nll` is the same pipeline's mixture NLL with the proposer's weights replaced by
-uniform weights over the same hypotheses (and the same Gaussians): the proposer's weights earn their keep
-when the NLL is lower than this.
+uniform weights over the same hypotheses' densities (the sensor's own uniform terms keeping their weight):
+the proposer's weights earn their keep when the NLL is lower than this.
 
 Everything is reported overall, per relation (of the true hypothesis) and per ambiguity level (the number
 of objects sharing the true anchor's label, the most over the anchors of "between": `meta.ambiguity` when
@@ -71,7 +89,7 @@ from app.errors import InvalidInput, ModelUnavailable
 from app.evaluation.metrics import DEFAULT_MASSES, hdr_coverage, mixture_nll, nees, rmse
 from app.grounding.hypotheses import Hypothesis, Proposal
 from app.grounding.interfaces import Grounder, HypothesisProposer
-from app.grounding.mixture import GaussianMixture
+from app.grounding.mixture import GaussianMixture, map_box
 from app.grounding.relations import Relation
 from app.grounding.sensor import LanguageSensor, broad_prior
 from app.scene_graph.model import SceneGraph
@@ -200,12 +218,55 @@ def mixture_coverage(
 ) -> np.ndarray:
     """Whether `target` lies in the mixture's HDR of each mass; bool (len(masses),).
 
-    One component: exact, y in HDR_m iff F(NEES) <= m. Several: Monte Carlo thresholds (`hdr_coverage`).
+    One Gaussian and no box: exact, y in HDR_m iff F(NEES) <= m. Otherwise Monte Carlo (`hdr_coverage`).
     """
-    if len(mixture.weights) == 1:
+    if len(mixture.weights) == 1 and not len(mixture.box_weights):
         level = chi2_3_cdf(float(nees(mixture.means[0], mixture.covariances[0], target)[0]))
         return np.array([level <= m for m in masses])
     return hdr_coverage(mixture, np.asarray(target).reshape(1, 3), rng, masses, hdr_samples)[0]
+
+
+def no_language_nll(scene_graph: SceneGraph, target: np.ndarray) -> float:
+    """-log U(y; map box) = log vol(U) with y inside U (`map_box`), +inf outside."""
+    box = map_box(scene_graph)
+    return math.log(box.volume) if bool(box.contains(target)[0]) else math.inf
+
+
+def moment_nees(density: GaussianMixture, target: np.ndarray) -> float:
+    """(y - mean(q))^T cov(q)^-1 (y - mean(q)) with the moment-matched mean and covariance of q."""
+    return float(nees(density.mean(), density.covariance(), target)[0])
+
+
+def uniform_weights_mixture(
+    mixture: GaussianMixture, densities: Sequence[GaussianMixture]
+) -> GaussianMixture:
+    """The served mixture with uniform weights over the hypotheses' densities, its own boxes kept.
+
+    With p(x) = (1 - v) sum_h w_h p_h(x) + sum_b v_b U(x; box_b) (v = sum_b v_b, the sensor's broad terms
+    appended after the densities' terms by `GaussianMixture.combine` and `with_background`), the answer is
+    (1 - v) sum_h p_h(x) / H + sum_b v_b U(x; box_b). Without densities (the broad prior) it is p itself.
+    """
+    if not densities:
+        return mixture
+    gaussians = sum(len(d.weights) for d in densities)
+    boxes = sum(len(d.box_weights) for d in densities)
+    if len(mixture.weights) != gaussians or len(mixture.box_weights) < boxes:
+        msg = (
+            f"the mixture holds {len(mixture.weights)} Gaussians and {len(mixture.box_weights)} boxes, "
+            f"not the densities' {gaussians} and {boxes} (+ its own boxes)"
+        )
+        raise ValueError(msg)
+    own = mixture.box_weights[boxes:]  # (B_own,)
+    even = GaussianMixture.combine(np.ones(len(densities)), densities)
+    keep = 1.0 - float(np.sum(own))
+    return GaussianMixture(
+        even.weights * keep,
+        even.means,
+        even.covariances,
+        np.concatenate([even.box_weights * keep, own]),
+        np.concatenate([even.box_lows, mixture.box_lows[boxes:]]),
+        np.concatenate([even.box_highs, mixture.box_highs[boxes:]]),
+    )
 
 
 def reliability_bins(
@@ -278,10 +339,16 @@ class CaseScore:
     target: np.ndarray  # (3,)
     point: np.ndarray  # (3,) where the error is measured
     nll: float  # -log p(y), nats
-    nees: float | None  # of the matched component; None when no component holds the true anchors
+    nees: float | None  # of the matched density; None when no hypothesis holds the true anchors
     covered: np.ndarray  # (M,) bool: y inside the HDR of each mass
-    uniform_nll: float | None = None  # the same Gaussians with uniform weights (proposers other than gt)
+    uniform_weights_nll: float | None = None  # uniform weights over the densities (proposers other than gt)
     components: int = 1
+    nees_full: float | None = None  # of the whole mixture's moment-matched Gaussian
+    uniform_nll: float = math.inf  # the no-language baseline, -log U(y; map box)
+
+    @property
+    def better_than_uniform(self) -> bool:
+        return self.nll < self.uniform_nll
 
 
 @dataclass(frozen=True)
@@ -302,10 +369,15 @@ def _mean_or_none(values: Sequence[float]) -> float | None:
 
 
 def summarize_scores(scores: Sequence[CaseScore], masses: Sequence[float] = DEFAULT_MASSES) -> dict[str, Any]:
-    """n, RMSE, NLL (mean, median), ANEES (over `anees_n` matched cases; `unmatched` the rest), coverage."""
+    """n, RMSE, NLL (mean, median), ANEES (over `anees_n` matched cases; `unmatched` the rest), coverage,
+    ANEES_full, and the no-language baseline's uniform_nll, better_than_uniform, nll_minus_uniform,
+    worst_excess_over_uniform and uniform_outside (the module docstring's definitions)."""
     if not scores:
         return {"n": 0}
     matched = [s.nees for s in scores if s.nees is not None]
+    full = [s.nees_full for s in scores if s.nees_full is not None]
+    inside = [s for s in scores if math.isfinite(s.uniform_nll)]
+    excess = [s.nll - s.uniform_nll for s in inside]
     covered = np.stack([s.covered for s in scores])  # (N, M)
     nll = np.array([s.nll for s in scores])
     out: dict[str, Any] = {
@@ -317,10 +389,16 @@ def summarize_scores(scores: Sequence[CaseScore], masses: Sequence[float] = DEFA
         "anees_n": len(matched),
         "unmatched": len(scores) - len(matched),
         "coverage": {str(m): float(np.mean(covered[:, j])) for j, m in enumerate(masses)},
+        "anees_full": _mean_or_none(full),
+        "uniform_nll": _mean_or_none([s.uniform_nll for s in inside]),
+        "uniform_outside": len(scores) - len(inside),
+        "better_than_uniform": float(np.mean([s.better_than_uniform for s in scores])),
+        "nll_minus_uniform": _mean_or_none(excess),
+        "worst_excess_over_uniform": float(max(excess)) if excess else None,
     }
-    uniform = [s.uniform_nll for s in scores if s.uniform_nll is not None]
-    if uniform:
-        out["uniform_weights_nll"] = float(np.mean(uniform))
+    uniform_weights = [s.uniform_weights_nll for s in scores if s.uniform_weights_nll is not None]
+    if uniform_weights:
+        out["uniform_weights_nll"] = float(np.mean(uniform_weights))
     return out
 
 
@@ -436,51 +514,59 @@ def _score_case(
     proposal: Proposal | None,
     *,
     given_truth: bool,
+    uniform_nll: float,
     rng: np.random.Generator,
     hdr_samples: int,
 ) -> CaseScore:
     """One grounder's mixture for one case, scored as the module docstring defines.
 
     `given_truth`: the hypotheses are the case's true ones (`--proposer gt`), the first being the truth.
+    `uniform_nll`: the case's no-language baseline (`no_language_nll`).
     """
     truth = case.hypotheses[0] if case.hypotheses else None
     target = np.asarray(case.target.position, dtype=np.float64)  # (3,)
-    uniform_nll = None
+    uniform_weights_nll = None
+    nees_value = None
     if _predicts_mixture(grounder):
         mixture: GaussianMixture = grounder.ground_mixture(case.scene_graph, case.utterance)  # type: ignore[attr-defined]
         matched = _nearest_component(mixture, case.scene_graph, truth.anchor_ids) if truth else None
+        chosen = matched if given_truth and matched is not None else int(np.argmax(mixture.weights))
+        point = mixture.means[chosen]
+        if matched is not None:
+            nees_value = float(nees(mixture.means[matched], mixture.covariances[matched], target)[0])
     else:
         if hypotheses:
             grounding = sensor.ground(case.scene_graph, case.utterance, hypotheses=hypotheses)
-            mixture, grounded = grounding.mixture, grounding.hypotheses
+            mixture, grounded, densities = grounding.mixture, grounding.hypotheses, grounding.densities
         elif proposal is not None:  # no anchor matched: the sensor's broad prior
-            mixture, grounded = broad_prior(case.scene_graph, proposal.parse), ()
+            mixture, grounded, densities = broad_prior(case.scene_graph, proposal.parse), (), ()
         else:
             msg = "no hypotheses to ground"
             raise ValueError(msg)
+        heaviest = max(range(len(grounded)), key=lambda k: grounded[k].weight) if grounded else None
         if given_truth:
             matched = 0
         else:
             true_anchors = frozenset(truth.anchor_ids) if truth else None
             holds = [k for k, h in enumerate(grounded) if frozenset(h.anchor_ids) == true_anchors]
             matched = max(holds, key=lambda k: grounded[k].weight) if holds else None
-            k = len(mixture.weights)
-            uniform = GaussianMixture(np.full(k, 1.0 / k), mixture.means, mixture.covariances)
-            uniform_nll = mixture_nll(uniform, target)
-    point = matched if given_truth and matched is not None else int(np.argmax(mixture.weights))
-    nees_value = None
-    if matched is not None:
-        nees_value = float(nees(mixture.means[matched], mixture.covariances[matched], target)[0])
+            uniform_weights_nll = mixture_nll(uniform_weights_mixture(mixture, densities), target)
+        guess = matched if given_truth else heaviest
+        point = densities[guess].mean() if guess is not None else mixture.mean()
+        if matched is not None:
+            nees_value = moment_nees(densities[matched], target)
     return CaseScore(
         relation=group[0],
         ambiguity=group[1],
         target=target,
-        point=mixture.means[point],
+        point=point,
         nll=mixture_nll(mixture, target),
         nees=nees_value,
         covered=mixture_coverage(mixture, target, rng, hdr_samples=hdr_samples),
-        uniform_nll=uniform_nll,
+        uniform_weights_nll=uniform_weights_nll,
         components=len(mixture.weights),
+        nees_full=moment_nees(mixture, target),
+        uniform_nll=uniform_nll,
     )
 
 
@@ -507,6 +593,9 @@ def evaluate_static(
     metrics = {<grounder name>: {"overall", "per_relation", "per_ambiguity", "failures", "seconds"},
     "referent": {"overall", "per_ambiguity"} (with a proposer), "run": counts}. A case that fails for a
     method (an LLM error, a bad anchor id) is counted in that method's failures and skipped by it.
+    per_case rows: {"case_id", "relation", "ambiguity", "uniform_nll" (null outside the map's box),
+    "referent" (with a proposer and true hypotheses), <grounder name>: {"nll", "error_m", "nees",
+    "covered", "components", "nees_full", "better_than_uniform"} or {"error"}}.
     """
     from tqdm import tqdm
 
@@ -532,7 +621,14 @@ def evaluate_static(
         relation = truth.relation.value if truth is not None else UNKNOWN
         bucket = ambiguity_bucket(case_ambiguity(case))
         true_anchors = frozenset(truth.anchor_ids) if truth is not None else None
-        row: dict[str, Any] = {"case_id": case.case_id, "relation": relation, "ambiguity": bucket}
+        baseline = no_language_nll(case.scene_graph, np.asarray(case.target.position, dtype=np.float64))
+        row: dict[str, Any] = {
+            "case_id": case.case_id,
+            "relation": relation,
+            "ambiguity": bucket,
+            # JSON has no infinity: null when the target lies outside the map's box.
+            "uniform_nll": baseline if math.isfinite(baseline) else None,
+        }
 
         proposal: Proposal | None = None
         proposal_error: BaseException | None = None
@@ -574,6 +670,7 @@ def evaluate_static(
                     hypotheses,
                     proposal,
                     given_truth=proposer is None,
+                    uniform_nll=baseline,
                     rng=np.random.default_rng((seed, index)),
                     hdr_samples=hdr_samples,
                 )
@@ -590,6 +687,8 @@ def evaluate_static(
                 "nees": score.nees,
                 "covered": [bool(c) for c in score.covered],
                 "components": score.components,
+                "nees_full": score.nees_full,
+                "better_than_uniform": score.better_than_uniform,
             }
         per_case.append(row)
 

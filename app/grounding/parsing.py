@@ -286,3 +286,9 @@ def parse_utterance(utterance: str, region_names: tuple[str, ...] = ()) -> Utter
         attributes=attributes,
         relation_known=known,
     )
+
+
+def target_noun(utterance: str, region_names: tuple[str, ...] = ()) -> str:
+    """The target's name as said, without determiners or attribute words: "my small black backpack ..."
+    -> "backpack" (what the spatial grounder reads of the target)."""
+    return split_attributes(parse_utterance(utterance, region_names).target)[1]

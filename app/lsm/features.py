@@ -1,28 +1,45 @@
-"""LSM inputs: (SceneGraph, hypothesis, utterance) -> padded, masked tensors.
+"""LSM inputs: (SceneGraph, hypothesis, target name) -> padded, masked tensors in a canonical local frame.
 
-A `Sample` holds one hypothesis's raw inputs (texts, boxes, roles, relation, region frame); `PackedSamples`
+A `Sample` holds one hypothesis's raw inputs (its text, boxes, roles, relation, region frame); `PackedSamples`
 stacks many of them with their text embeddings and slices batches (`LSMBatch`) out of them, computing the
 geometry features on the fly. The text encoder is frozen, so embeddings are looked up, never trained:
 `EmbeddingCache` keeps them on disk during training and the grounder keeps them in an LRU.
 
-The anchor region frame (s, t) is where the model's output lives (mu_w = s * tanh(.) + t):
+**What the model reads of the language** is the hypothesis, not the utterance: `hypothesis_text` writes
+"the mug on the table" from the target's name, the relation and the anchors' labels. Everything else a
+person said (which table, "you know, the one I always use") is the proposer's business; here it could only
+move the prediction without saying anything about position.
 
-    t = mean of the anchors' centres (the midpoint for "between"),
+**The local frame.** Every sample is expressed relative to its anchors, so that the prediction moves with
+the scene (invariance up to the same rigid motion):
+
+- origin o = the mean of the anchors' centres (world, float64); every input is a difference from it, so no
+  absolute coordinate ever reaches float32 or the network;
+- yaw phi: the scene's dominant yaw (area-weighted circular mean of the objects' yaws modulo 90 degrees,
+  zero for axis-aligned maps), plus the quarter turn that points the centroid of the objects' centres, seen
+  from o, along +x (within 45 degrees). Both are rotation-covariant, so turning the whole scene turns the
+  frame with it; boxes are re-measured as the axis-aligned boxes of their residual yaw in that frame.
+
+A region hypothesis (no anchor objects: "the table is in the kitchen", or in the whole map) takes the
+region's box (the objects' bounding box for the map) as a pseudo-object anchor labelled with the region's
+name, or "room".
+
+The anchor region frame (s, t) is where the model's output lives (mu_local = s * tanh(.) + t):
+
+    t = 0 (the anchors' mean centre is the origin),
     s = max(max(high - t, t - low) + (m_xy, m_xy, m_z), s_min)     (per axis, metres)
 
-with [low, high] the anchors' joint axis-aligned box, so t +- s holds every anchor plus the margin. For one
-anchor this is its centre and half-extent + margin. mu = 0 (the head's initial output) is the anchor's centre,
-or the midpoint between the two anchors.
-
-The margin is relation-independent: "near" targets (within 0.6 m of the anchor's surface in the case builder)
-and "between" targets stay well inside, and m_z = 1.5 m reaches objects hanging up to 1.5 m above or below
-the anchor. s_min keeps tiny anchors from shrinking the frame (and the covariance, whose floor is 0.05 s) to
-nothing. "closest" and "farthest" pick one of several same-class objects anywhere in the room, so for them
-(with `ordinal_scene_frame`) s is widened per axis until t +- s holds the whole scene's bounding box.
+with [low, high] the anchors' joint axis-aligned box in the local frame, so t +- s holds every anchor plus the
+margin. The margin is relation-independent: "near" targets and "between" targets stay well inside, and
+m_z = 1.5 m reaches objects hanging up to 1.5 m above or below the anchor. s_min keeps tiny anchors from
+shrinking the frame (and the covariance, whose floor is 0.05 s) to nothing. "closest" and "farthest" pick
+one of several same-class objects anywhere in the map, so for them (with `ordinal_scene_frame`) s is widened
+per axis until t +- s holds the whole scene's bounding box.
 """
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -39,7 +56,21 @@ from app.scene_graph.model import SceneGraph
 
 Embed = Callable[[Sequence[str]], np.ndarray]
 ORDINAL_RELATIONS = (Relation.CLOSEST, Relation.FARTHEST)
+#: The pseudo-anchor's label for the whole map (a region without a name).
+ROOM_LABEL = "room"
+#: How `hypothesis_text` says each relation.
+RELATION_WORDS: dict[Relation, str] = {
+    Relation.ON: "on",
+    Relation.IN: "in",
+    Relation.NEAR: "near",
+    Relation.BETWEEN: "between",
+    Relation.ABOVE: "above",
+    Relation.BELOW: "below",
+    Relation.CLOSEST: "closest to",
+    Relation.FARTHEST: "farthest from",
+}
 _CAMEL_BOUNDARY = re.compile(r"(?<=[a-z0-9])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])")
+_QUARTER = 0.5 * math.pi
 
 
 @lru_cache(maxsize=4096)  # labels repeat across every request on the same maps
@@ -49,66 +80,109 @@ def label_text(label: str) -> str:
     return " ".join(words.lower().split())
 
 
+def hypothesis_text(target: str, relation: Relation, anchor_labels: Sequence[str]) -> str:
+    """What the model reads: "the mug on the table", "the lamp between the sofa and the tv stand"."""
+    anchors = " and the ".join(label_text(a) for a in anchor_labels) or ROOM_LABEL
+    return f"the {label_text(target) or 'object'} {RELATION_WORDS[Relation(relation)]} the {anchors}"
+
+
 @dataclass(frozen=True)
 class Sample:
-    """One hypothesis in its scene: the kept objects (anchors first) and the region frame."""
+    """One hypothesis in its scene, in its local frame: the kept objects (anchors first) and the region."""
 
-    utterance: str
+    text: str  # hypothesis_text
     labels: tuple[str, ...]  # n embedding texts
-    centers: np.ndarray  # (n, 3) metres
-    sizes: np.ndarray  # (n, 3) axis-aligned extents, metres
+    centers: np.ndarray  # (n, 3) metres, local frame
+    sizes: np.ndarray  # (n, 3) axis-aligned extents in the local frame, metres
     roles: np.ndarray  # (n,) ROLE_ANCHOR / ROLE_OTHER
     relation: int  # RELATION_INDEX
-    region_shift: np.ndarray  # (3,) t
+    region_shift: np.ndarray  # (3,) t, local frame
     region_scale: np.ndarray  # (3,) s
-    floor_z: float
-    scene_low: np.ndarray  # (3,) corners of the scene's bounding box
+    floor_z: float  # local frame
+    scene_low: np.ndarray  # (3,) corners of the scene's bounding box, local frame
     scene_high: np.ndarray  # (3,)
-    target: np.ndarray | None = None  # (3,)
+    origin: np.ndarray  # (3,) float64: the local frame's origin in the world
+    yaw: float  # the local frame's rotation about z: world = R(yaw) local + origin
+    target: np.ndarray | None = None  # (3,) local frame
+
+    def to_world(self, mean: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A local-frame mean (3,) and covariances (..., 3, 3) in the world frame."""
+        rotation = rotation_z(self.yaw)
+        return rotation @ mean + self.origin, rotation @ covariances @ rotation.T
+
+
+def rotation_z(yaw: float) -> np.ndarray:
+    """R(yaw) about +z, (3, 3)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 @dataclass(frozen=True)
 class SceneArrays:
-    """A scene graph as arrays, computed once per scene and shared by all of its hypotheses."""
+    """A scene graph as arrays, computed once per scene and shared by all of its hypotheses (world frame)."""
 
     ids: tuple[str, ...]
     rows: Mapping[str, int]  # object id -> its row in the arrays
     labels: tuple[str, ...]  # embedding texts (label_text)
     centers: np.ndarray  # (M, 3)
-    sizes: np.ndarray  # (M, 3) extents of the axis-aligned boxes (yaw included)
-    bounds: tuple[np.ndarray, np.ndarray]  # scene's (low, high) corners, objects and regions
+    dims: np.ndarray  # (M, 3) the boxes' own sides (before yaw)
+    yaws: np.ndarray  # (M,)
+    regions: Mapping[str, tuple[np.ndarray, np.ndarray, str]]  # id -> (centre, size, embedding text)
+    map_box: tuple[
+        np.ndarray, np.ndarray
+    ]  # (centre, sides) of the objects' bounding box, turned by dominant_yaw
     floor_z: float  # 10th percentile of object bottoms: most furniture stands on the floor
+    dominant_yaw: float  # in [-pi/4, pi/4): the scene's yaw modulo a quarter turn
+    centroid: np.ndarray  # (3,) mean of the objects' centres
 
     @classmethod
     def of(cls, scene_graph: SceneGraph) -> SceneArrays:
         objects = scene_graph.objects
+        if not objects:
+            msg = "the scene graph has no objects to ground in"
+            raise NotFound(msg)
         centers = np.array([o.center for o in objects], dtype=np.float64).reshape(-1, 3)
-        box = np.array([o.size for o in objects], dtype=np.float64).reshape(-1, 3)
-        # SceneObject.half_extent for all objects at once: the axis-aligned extent of each yawed box.
-        yaw = np.array([o.yaw for o in objects], dtype=np.float64)
-        cos, sin = np.abs(np.cos(yaw)), np.abs(np.sin(yaw))
-        sizes = np.stack(
-            [cos * box[:, 0] + sin * box[:, 1], sin * box[:, 0] + cos * box[:, 1], box[:, 2]], axis=1
-        )
-        bottoms = centers[:, 2] - 0.5 * sizes[:, 2]
-        if scene_graph.regions:  # SceneGraph.bounds() without recomputing every object's extent
-            region_centers = np.array([r.center for r in scene_graph.regions], dtype=np.float64)
-            region_half = 0.5 * np.array([r.size for r in scene_graph.regions], dtype=np.float64)
-            lows = np.concatenate([centers - 0.5 * sizes, region_centers - region_half])
-            highs = np.concatenate([centers + 0.5 * sizes, region_centers + region_half])
-        else:
-            lows, highs = centers - 0.5 * sizes, centers + 0.5 * sizes
-        bounds = (lows.min(axis=0), highs.max(axis=0)) if len(lows) else scene_graph.bounds()
+        dims = np.array([o.size for o in objects], dtype=np.float64).reshape(-1, 3)
+        yaws = np.array([o.yaw for o in objects], dtype=np.float64)
+        extents = aabb_extents(dims, yaws)  # (M, 3)
+        # Area-weighted circular mean of 4 yaw: quarter turns of a box look alike.
+        area = dims[:, 0] * dims[:, 1]
+        sin4, cos4 = float(area @ np.sin(4.0 * yaws)), float(area @ np.cos(4.0 * yaws))
+        dominant = 0.25 * math.atan2(sin4, cos4) if math.hypot(sin4, cos4) > 1e-9 * area.sum() else 0.0
+        # The map's box in the dominant frame (so that it turns with the scene), as a yawed box.
+        turn = rotation_z(dominant)
+        aligned = centers @ turn  # (M, 3): R^T c
+        half = 0.5 * aabb_extents(dims, yaws - dominant)
+        low, high = (aligned - half).min(axis=0), (aligned + half).max(axis=0)
         ids = tuple(o.id for o in objects)
         return cls(
             ids=ids,
             rows={object_id: k for k, object_id in enumerate(ids)},
             labels=tuple(label_text(o.label) for o in objects),
             centers=centers,
-            sizes=sizes,
-            bounds=bounds,
-            floor_z=percentile(bottoms, 10.0) if len(objects) else 0.0,
+            dims=dims,
+            yaws=yaws,
+            regions={
+                r.id: (
+                    np.asarray(r.center, dtype=np.float64),
+                    np.asarray(r.size, dtype=np.float64),
+                    label_text(r.name) or ROOM_LABEL,
+                )
+                for r in scene_graph.regions
+            },
+            map_box=(turn @ (0.5 * (low + high)), high - low),
+            floor_z=percentile(centers[:, 2] - 0.5 * extents[:, 2], 10.0),
+            dominant_yaw=dominant,
+            centroid=centers.mean(axis=0),
         )
+
+
+def aabb_extents(dims: np.ndarray, yaws: np.ndarray) -> np.ndarray:
+    """Sides (M, 3) of the axis-aligned boxes of boxes with sides `dims` (M, 3) turned by `yaws` (M,)."""
+    cos, sin = np.abs(np.cos(yaws)), np.abs(np.sin(yaws))
+    return np.stack(
+        [cos * dims[:, 0] + sin * dims[:, 1], sin * dims[:, 0] + cos * dims[:, 1], dims[:, 2]], axis=1
+    )
 
 
 def percentile(values: np.ndarray, q: float) -> float:
@@ -121,70 +195,125 @@ def percentile(values: np.ndarray, q: float) -> float:
     return float(ordered[low] + (position - low) * (ordered[high] - ordered[low]))
 
 
+def frame_yaw(arrays: SceneArrays, origin: np.ndarray) -> float:
+    """The local frame's yaw: the dominant yaw plus the quarter turn that puts the objects' centroid, seen
+    from `origin`, within 45 degrees of +x (the dominant yaw alone when the centroid is at the origin)."""
+    direction = arrays.centroid[:2] - origin[:2]
+    if float(np.hypot(*direction)) < 1e-6:
+        return arrays.dominant_yaw
+    angle = math.atan2(direction[1], direction[0]) - arrays.dominant_yaw
+    turns = math.floor(angle / _QUARTER + 0.5)
+    return arrays.dominant_yaw + turns * _QUARTER
+
+
 def region_frame(
-    centers: np.ndarray,
-    sizes: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
     relation: Relation,
     cfg: LSMConfig,
     scene_bounds: tuple[np.ndarray, np.ndarray] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """(t, s) of the anchors' boxes, centers and sizes (A, 3): see the module docstring.
+) -> np.ndarray:
+    """s for the anchors' joint box [low, high] about t = 0 (the local origin): see the module docstring.
 
     For closest/farthest (with `cfg.ordinal_scene_frame` and `scene_bounds` given), s is at least the distance
     from t to the farther face of the scene's bounding box on each axis.
     """
-    low = np.min(centers - 0.5 * sizes, axis=0)
-    high = np.max(centers + 0.5 * sizes, axis=0)
     margin = np.array([cfg.region_margin_xy, cfg.region_margin_xy, cfg.region_margin_z])
-    shift = centers.mean(axis=0)
-    scale = np.maximum(np.maximum(high - shift, shift - low) + margin, cfg.region_min_half_extent)
+    scale = np.maximum(np.maximum(high, -low) + margin, cfg.region_min_half_extent)
     if cfg.ordinal_scene_frame and scene_bounds is not None and relation in ORDINAL_RELATIONS:
         scene_low, scene_high = scene_bounds
-        scale = np.maximum(scale, np.maximum(shift - scene_low, scene_high - shift))
-    return shift, scale
+        scale = np.maximum(scale, np.maximum(-scene_low, scene_high))
+    return scale
 
 
 def make_sample(
     scene: SceneGraph | SceneArrays,
     anchor_ids: Sequence[str],
     relation: Relation,
-    utterance: str,
+    target_name: str,
     cfg: LSMConfig,
     target: Sequence[float] | None = None,
+    region_id: str | None = None,
 ) -> Sample:
-    """Keep the anchors and the `max_objects - len(anchors)` objects nearest to any anchor's centre."""
+    """Keep the anchors and the `max_objects - len(anchors)` objects nearest to any anchor's centre.
+
+    No `anchor_ids`: a region hypothesis, anchored on region `region_id`'s box (the map's when None or
+    unknown). `target_name` is what the speaker called the target ("mug"); the sample's text is
+    `hypothesis_text` of it. `target` (world) is carried into the local frame, for training and evaluation.
+    """
     arrays = scene if isinstance(scene, SceneArrays) else SceneArrays.of(scene)
     row = arrays.rows
     missing = [i for i in anchor_ids if i not in row]
-    if missing or not anchor_ids:
-        msg = f"anchor object ids {missing or list(anchor_ids)} are not in the scene graph"
+    if missing:
+        msg = f"anchor object ids {missing} are not in the scene graph"
         raise NotFound(msg)
-    anchors = np.array([row[i] for i in dict.fromkeys(anchor_ids)])  # (A,)
+    anchors = np.array([row[i] for i in dict.fromkeys(anchor_ids)], dtype=np.int64)  # (A,)
+    if len(anchors):
+        anchor_centers, anchor_dims = arrays.centers[anchors], arrays.dims[anchors]
+        anchor_yaws, anchor_labels = arrays.yaws[anchors], tuple(arrays.labels[k] for k in anchors)
+    else:
+        if region_id is not None and region_id in arrays.regions:
+            centre, size, name = arrays.regions[region_id]
+            box_yaw = 0.0
+        else:  # the whole map
+            (centre, size), name, box_yaw = arrays.map_box, ROOM_LABEL, arrays.dominant_yaw
+        anchor_centers, anchor_dims, anchor_labels = centre[None], size[None], (name,)
+        anchor_yaws = np.full(1, box_yaw)
+    origin = anchor_centers.mean(axis=0)  # (3,)
     is_other = np.ones(len(arrays.ids), dtype=bool)
     is_other[anchors] = False
     others = np.flatnonzero(is_other)  # (M - A,) in scene order
-    n_others = max(cfg.max_objects - len(anchors), 0)
+    n_others = max(cfg.max_objects - len(anchor_centers), 0)
     if len(others) > n_others:
-        diff = arrays.centers[others][:, None, :] - arrays.centers[anchors][None, :, :]  # (M - A, A, 3)
+        diff = arrays.centers[others][:, None, :] - anchor_centers[None, :, :]  # (M - A, A, 3)
         dist = np.linalg.norm(diff, axis=-1).min(axis=1)  # (M - A,)
         others = others[np.argsort(dist, kind="stable")[:n_others]]
-    kept = np.concatenate([anchors, others])
-    shift, scale = region_frame(
-        arrays.centers[anchors], arrays.sizes[anchors], Relation(relation), cfg, arrays.bounds
+
+    yaw = frame_yaw(arrays, origin)
+    rotation = rotation_z(yaw)  # world = R local + origin
+
+    def local(points: np.ndarray) -> np.ndarray:
+        return (points - origin) @ rotation  # (N, 3): R^T (p - o) row by row
+
+    kept_centers = np.concatenate([local(anchor_centers), local(arrays.centers[others])])  # (n, 3)
+    kept_sizes = np.concatenate(
+        [
+            aabb_extents(anchor_dims, anchor_yaws - yaw),
+            aabb_extents(arrays.dims[others], arrays.yaws[others] - yaw),
+        ]
     )
+    every_center = local(arrays.centers)  # (M, 3)
+    every_half = 0.5 * aabb_extents(arrays.dims, arrays.yaws - yaw)
+    scene_low = (every_center - every_half).min(axis=0)
+    scene_high = (every_center + every_half).max(axis=0)
+    if arrays.regions:
+        region_centers = local(np.stack([c for c, _, _ in arrays.regions.values()]))
+        region_half = 0.5 * aabb_extents(
+            np.stack([size for _, size, _ in arrays.regions.values()]), np.full(len(arrays.regions), -yaw)
+        )
+        scene_low = np.minimum(scene_low, (region_centers - region_half).min(axis=0))
+        scene_high = np.maximum(scene_high, (region_centers + region_half).max(axis=0))
+    n_anchors = len(anchor_centers)
+    anchor_low = (kept_centers[:n_anchors] - 0.5 * kept_sizes[:n_anchors]).min(axis=0)
+    anchor_high = (kept_centers[:n_anchors] + 0.5 * kept_sizes[:n_anchors]).max(axis=0)
+    scale = region_frame(anchor_low, anchor_high, Relation(relation), cfg, (scene_low, scene_high))
     return Sample(
-        utterance=utterance,
-        labels=tuple(arrays.labels[k] for k in kept),
-        centers=arrays.centers[kept].astype(np.float32),
-        sizes=arrays.sizes[kept].astype(np.float32),
-        roles=np.where(np.arange(len(kept)) < len(anchors), ROLE_ANCHOR, ROLE_OTHER).astype(np.int64),
+        text=hypothesis_text(target_name, relation, anchor_labels),
+        labels=anchor_labels + tuple(arrays.labels[k] for k in others),
+        centers=kept_centers.astype(np.float32),
+        sizes=kept_sizes.astype(np.float32),
+        roles=np.where(np.arange(len(kept_centers)) < n_anchors, ROLE_ANCHOR, ROLE_OTHER).astype(np.int64),
         relation=RELATION_INDEX[Relation(relation)],
-        region_shift=shift.astype(np.float32),
+        region_shift=np.zeros(3, dtype=np.float32),
         region_scale=scale.astype(np.float32),
-        floor_z=arrays.floor_z,
-        scene_low=arrays.bounds[0].astype(np.float32),
-        scene_high=arrays.bounds[1].astype(np.float32),
-        target=None if target is None else np.asarray(target, dtype=np.float32),
+        floor_z=float(arrays.floor_z - origin[2]),
+        scene_low=scene_low.astype(np.float32),
+        scene_high=scene_high.astype(np.float32),
+        origin=origin,
+        yaw=yaw,
+        target=None
+        if target is None
+        else local(np.asarray(target, dtype=np.float64)[None])[0].astype(np.float32),
     )
 
 
@@ -285,7 +414,7 @@ class PackedSamples:
         if not samples:
             msg = "cannot pack zero samples"
             raise ValueError(msg)
-        texts = list(dict.fromkeys([s.utterance for s in samples] + [t for s in samples for t in s.labels]))
+        texts = list(dict.fromkeys([s.text for s in samples] + [t for s in samples for t in s.labels]))
         row = {text: i for i, text in enumerate(texts)}
         self.embeddings = torch.from_numpy(np.ascontiguousarray(embed(texts), dtype=np.float32))  # (U, E)
         counts = np.array([len(s.labels) for s in samples])
@@ -301,7 +430,7 @@ class PackedSamples:
             centers[i, :n] = s.centers
             sizes[i, :n] = s.sizes
             roles[i, :n] = s.roles
-        self.text_index = torch.tensor([row[s.utterance] for s in samples])  # (S,)
+        self.text_index = torch.tensor([row[s.text] for s in samples])  # (S,)
         self.label_index = torch.from_numpy(label_index)  # (S, N)
         self.centers = torch.from_numpy(centers)  # (S, N, 3)
         self.sizes = torch.from_numpy(sizes)  # (S, N, 3)

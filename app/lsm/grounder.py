@@ -18,20 +18,30 @@ import torch
 from app.errors import ModelUnavailable
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.mixture import Gaussian, GaussianMixture, project_to_pd
-from app.grounding.relations import Relation
-from app.lsm.features import PackedSamples, SceneArrays, make_sample
+from app.grounding.parsing import target_noun
+from app.lsm.features import PackedSamples, Sample, SceneArrays, make_sample
 from app.lsm.inference import LSMInference
-from app.lsm.model import CONFIG_NAME, WEIGHTS_NAME, LanguageSensorModel, load_checkpoint
+from app.lsm.model import CONFIG_NAME, WEIGHTS_NAME, LanguageSensorModel, LSMOutput, load_checkpoint
 from app.lsm.text_encoder import TextEncoder, file_sha256
 from app.scene_graph.model import SceneGraph
 
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[2] / "models" / "lsm"
 
 
-def calibration_scale(calibration: Mapping[str, Any], relation: Relation) -> float:
-    """c_r for this relation; the overall scale for relations the calibration set did not hold; 1 if none."""
+#: The calibration key of region hypotheses (no anchor object): they are not "in" an object.
+REGION_KEY = "region"
+
+
+def calibration_key(hypothesis: Hypothesis) -> str:
+    """The relation's name, or `REGION_KEY` for a region hypothesis."""
+    return hypothesis.relation.value if hypothesis.anchor_ids else REGION_KEY
+
+
+def calibration_scale(calibration: Mapping[str, Any], key: str) -> float:
+    """c for this relation (or `REGION_KEY`); the overall scale for keys the calibration set did not hold;
+    1 if none."""
     per_relation = calibration.get("per_relation", {})
-    return float(per_relation.get(relation.value, calibration.get("overall", 1.0)))
+    return float(per_relation.get(key, calibration.get("overall", 1.0)))
 
 
 class LSMGrounder:
@@ -79,17 +89,38 @@ class LSMGrounder:
     def ground(
         self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
     ) -> list[GaussianMixture]:
+        """One density per hypothesis: the core Gaussian and the tail (a scale mixture), calibrated."""
         if not hypotheses:
             return []
         cfg = self.model.cfg
         scene = SceneArrays.of(scene_graph)
-        samples = [make_sample(scene, h.anchor_ids, h.relation, utterance, cfg) for h in hypotheses]
+        target = target_noun(utterance, tuple(r.name.lower() for r in scene_graph.regions if r.name))
+        samples = [
+            make_sample(scene, h.anchor_ids, h.relation, target, cfg, region_id=h.region_id)
+            for h in hypotheses
+        ]
         out = self.inference(PackedSamples(samples, self.encoder.encode))
-        means = out.mean.double().numpy()  # (H, 3)
-        covs = out.covariance.double().numpy()  # (H, 3, 3)
-        scales = np.array([calibration_scale(self.calibration, Relation(h.relation)) for h in hypotheses])
-        covs = project_to_pd(covs * scales[:, None, None])  # (H, 3, 3)
-        return [GaussianMixture.of(Gaussian(mean=m, covariance=c)) for m, c in zip(means, covs, strict=True)]
+        scales = np.array([calibration_scale(self.calibration, calibration_key(h)) for h in hypotheses])
+        return [
+            self._density(sample, out, k, scale)
+            for k, (sample, scale) in enumerate(zip(samples, scales, strict=True))
+        ]
+
+    @staticmethod
+    def _density(sample: Sample, out: LSMOutput, k: int, scale: float) -> GaussianMixture:
+        """Hypothesis k's density in the world frame, its covariances scaled by the calibration c."""
+        covariances = [out.covariance[k]]
+        weights = [1.0]
+        tail = out.tail_covariance
+        if tail is not None and out.tail_weight is not None:
+            a = float(out.tail_weight[k])
+            covariances.append(tail[k])
+            weights = [1.0 - a, a]
+        mean, covs = sample.to_world(
+            out.mean[k].double().numpy(), scale * torch.stack(covariances).double().numpy()
+        )
+        gaussians = [Gaussian(mean=mean, covariance=c) for c in project_to_pd(covs)]
+        return GaussianMixture.from_components(weights, gaussians)
 
     def describe(self) -> dict[str, Any]:
         return {

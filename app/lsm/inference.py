@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from app.lsm.features import PackedSamples, object_geometry, region_condition
-from app.lsm.model import ROLE_QUERY, Block, LanguageSensorModel, LSMOutput
+from app.lsm.model import ROLE_QUERY, Block, LanguageSensorModel, LSMOutput, decode_head
 
 
 class LSMInference:
@@ -121,16 +121,11 @@ class LSMInference:
         out = pooled * (1.0 + film_scale) + film_shift
         for layer in self.head[:-1]:  # GELU after each hidden layer (dropout is off in eval mode)
             out = F.gelu(F.linear(out, layer.weight, layer.bias))
-        out = F.linear(out, self.head[-1].weight, self.head[-1].bias)  # (B, 9)
+        out = F.linear(out, self.head[-1].weight, self.head[-1].bias)  # (B, O)
         if model.relation_prior is not None:
             prior = F.linear(cond, model.relation_prior.weight, model.relation_prior.bias)
-            out = out + prior.view(bsz, cfg.n_relations, 9)[torch.arange(bsz), packed.relation]
-        mean = torch.tanh(out[:, :3])  # (B, 3) region frame
-        diag = F.softplus(out[:, 3:6]) + cfg.sigma_floor  # (B, 3)
-        chol = torch.zeros(bsz, 3, 3)
-        chol[:, [0, 1, 2], [0, 1, 2]] = diag
-        chol[:, [1, 2, 2], [0, 0, 1]] = out[:, 6:9]  # L_10, L_20, L_21
-        return LSMOutput(mean=scale * mean + shift, chol=scale[:, :, None] * chol)
+            out = out + prior.view(bsz, cfg.n_relations, cfg.n_outputs)[torch.arange(bsz), packed.relation]
+        return decode_head(out, shift, scale, cfg)
 
     def _spatial_bias(
         self,

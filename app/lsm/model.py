@@ -10,10 +10,20 @@ The fused target-query token, FiLM-modulated by the anchor region's (s, t), feed
 -> 9: mu = tanh(.) in the region frame, L lower-triangular with softplus diagonal + sigma floor, then
 mu_w = s * mu + t, L_w = diag(s) L, Sigma = L_w L_w^T (the reference's appendix table, equation by equation).
 Deviations (see models/lsm/MODEL_CARD.md): the relation also enters as an embedding on the text token and
-as a per-relation linear map of the region condition added to the head's 9 outputs.
+as a per-relation linear map of the region condition added to the head's outputs; and with `tail` (on by
+default) each hypothesis's density keeps mass where the model can be wrong, a scale mixture of a core and a
+wider Gaussian about the same mean,
 
-Loss (reference appendix), lambda_1 = 1:
-    L = 1/2 (log|Sigma| + (y - mu)^T Sigma^-1 (y - mu) + 3 log 2 pi) + lambda_1 ||mu - y||_1.
+    p(y | h) = (1 - a) N(y; mu, Sigma) + a N(y; mu, Sigma + Delta),   Delta = D_w D_w^T,
+
+with D_w = diag(s) D (D lower-triangular, softplus diagonal) and a = a_max sigmoid(.) from 7 more head
+outputs (16 in all).
+
+Loss (reference appendix, with the density above), lambda_1 = 1:
+    L = -log p(y | h) + lambda_1 ||mu - y||_1,
+without the tail:
+    L = 1/2 (log|Sigma| + (y - mu)^T Sigma^-1 (y - mu) + 3 log 2 pi)
+        + lambda_1 ||mu - y||_1.
 """
 
 from __future__ import annotations
@@ -62,12 +72,19 @@ class LSMConfig:
     relation_embedding: bool = True  # deviation from the reference: the relation also enters explicitly
     relation_prior: bool = True  # deviation: per-relation affine map region_cond -> head output
     l1_weight: float = 1.0
+    tail: bool = True  # deviation: a wider Gaussian per hypothesis with a learned weight
+    tail_max_weight: float = 0.5  # a < a_max: the core stays the heavier part
     # Input features (they define the output frame, so they travel with the weights).
     max_objects: int = 150  # nearest to the anchor(s), anchors always kept
     region_margin_xy: float = 1.0  # s = reach of the anchors' joint box from t + margin (metres), per axis
     region_margin_z: float = 1.5
     region_min_half_extent: float = 0.5  # floor on every component of s (metres)
     ordinal_scene_frame: bool = True  # closest/farthest: s grows to reach the whole scene's bounding box
+
+    @property
+    def n_outputs(self) -> int:
+        """The head's outputs: mean (3), L (6), and with the tail D (6) and the tail's weight (1)."""
+        return 16 if self.tail else 9
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> LSMConfig:
@@ -97,12 +114,27 @@ class LSMBatch:
 
 
 class LSMOutput(NamedTuple):
-    mean: torch.Tensor  # (B, 3) world frame
-    chol: torch.Tensor  # (B, 3, 3) lower-triangular L_w, Sigma = L_w L_w^T
+    mean: torch.Tensor  # (B, 3) the samples' frame
+    chol: torch.Tensor  # (B, 3, 3) lower-triangular L_w, Sigma = L_w L_w^T (the core)
+    tail_chol: torch.Tensor | None = None  # (B, 3, 3) D_w: the tail's covariance is Sigma + D_w D_w^T
+    tail_weight: torch.Tensor | None = None  # (B,) a
 
     @property
     def covariance(self) -> torch.Tensor:
         return self.chol @ self.chol.transpose(-1, -2)  # (B, 3, 3)
+
+    @property
+    def tail_covariance(self) -> torch.Tensor | None:
+        if self.tail_chol is None:
+            return None
+        return self.covariance + self.tail_chol @ self.tail_chol.transpose(-1, -2)  # (B, 3, 3)
+
+    def moment_covariance(self) -> torch.Tensor:
+        """The density's covariance, (1 - a) Sigma + a (Sigma + Delta) = Sigma + a Delta, (B, 3, 3)."""
+        if self.tail_chol is None or self.tail_weight is None:
+            return self.covariance
+        delta = self.tail_chol @ self.tail_chol.transpose(-1, -2)
+        return self.covariance + self.tail_weight[:, None, None] * delta
 
 
 class Block(nn.Module):
@@ -159,7 +191,7 @@ class LanguageSensorModel(nn.Module):
         # Deviation: a per-relation affine map of the region condition added to the head's output. The
         # shared head did not learn relation-specific displacements such as "farthest" -> across the room.
         self.relation_prior = (
-            nn.Linear(cfg.region_cond_dim, 9 * cfg.n_relations) if cfg.relation_prior else None
+            nn.Linear(cfg.region_cond_dim, cfg.n_outputs * cfg.n_relations) if cfg.relation_prior else None
         )
         self.head = nn.Sequential(
             nn.Linear(dim, cfg.head_hidden1),
@@ -168,7 +200,7 @@ class LanguageSensorModel(nn.Module):
             nn.Linear(cfg.head_hidden1, cfg.head_hidden2),
             nn.GELU(),
             nn.Dropout(cfg.head_dropout),
-            nn.Linear(cfg.head_hidden2, 9),
+            nn.Linear(cfg.head_hidden2, cfg.n_outputs),
         )
         self.apply(self._init_weights)
         # Start every FiLM at identity and every prediction at (mu = t, L = (softplus(0) + floor) I).
@@ -230,27 +262,47 @@ class LanguageSensorModel(nn.Module):
         pooled = self.ln_f(x[:, 1])  # (B, D): the target-query token
 
         scale, shift = self.region_film(batch.region_cond).chunk(2, dim=-1)  # (B, D) each
-        out = self.head(pooled * (1.0 + scale) + shift)  # (B, 9)
+        out = self.head(pooled * (1.0 + scale) + shift)  # (B, O)
         if self.relation_prior is not None:
-            prior = self.relation_prior(batch.region_cond).view(bsz, cfg.n_relations, 9)  # (B, R, 9)
-            out = out + prior[torch.arange(bsz), batch.relation]  # (B, 9)
-        mean = torch.tanh(out[:, :3])  # (B, 3) region frame
-        diag = F.softplus(out[:, 3:6]) + cfg.sigma_floor  # (B, 3)
-        zero = torch.zeros_like(diag[:, 0])
-        lower = out[:, 6:9]  # (B, 3): L_10, L_20, L_21
-        chol = torch.stack(
-            [diag[:, 0], zero, zero, lower[:, 0], diag[:, 1], zero, lower[:, 1], lower[:, 2], diag[:, 2]],
-            dim=-1,
-        ).view(bsz, 3, 3)  # (B, 3, 3)
-        s, t = batch.region_scale, batch.region_shift  # (B, 3) each
-        return LSMOutput(mean=s * mean + t, chol=s[:, :, None] * chol)  # mu_w = s mu + t, L_w = diag(s) L
+            prior = self.relation_prior(batch.region_cond).view(bsz, cfg.n_relations, cfg.n_outputs)
+            out = out + prior[torch.arange(bsz), batch.relation]  # (B, O)
+        return decode_head(out, batch.region_shift, batch.region_scale, cfg)
 
     def loss(self, output: LSMOutput, target: torch.Tensor) -> torch.Tensor:
-        """Mean over the batch of Gaussian NLL (nats) + l1_weight * ||mu - y||_1."""
-        return (
-            gaussian_nll(output.mean, output.chol, target)
-            + self.cfg.l1_weight * l1_error(output.mean, target)
-        ).mean()
+        """Mean over the batch of the density's NLL (nats) + l1_weight * ||mu - y||_1."""
+        return (density_nll(output, target) + self.cfg.l1_weight * l1_error(output.mean, target)).mean()
+
+
+def _lower(diag: torch.Tensor, off: torch.Tensor) -> torch.Tensor:
+    """Lower-triangular (B, 3, 3) from a diagonal (B, 3) and (L_10, L_20, L_21) (B, 3)."""
+    zero = torch.zeros_like(diag[:, 0])
+    return torch.stack(
+        [diag[:, 0], zero, zero, off[:, 0], diag[:, 1], zero, off[:, 1], off[:, 2], diag[:, 2]], dim=-1
+    ).view(-1, 3, 3)
+
+
+def decode_head(out: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor, cfg: LSMConfig) -> LSMOutput:
+    """The head's outputs (B, O) as the density: mu = s tanh(.) + t, L_w = diag(s) L, and the tail."""
+    mean = torch.tanh(out[:, :3])  # (B, 3) region frame
+    chol = _lower(F.softplus(out[:, 3:6]) + cfg.sigma_floor, out[:, 6:9])  # (B, 3, 3)
+    s, t = scale, shift  # (B, 3) each
+    tail_chol = tail_weight = None
+    if cfg.tail:
+        tail_chol = s[:, :, None] * _lower(F.softplus(out[:, 9:12]) + cfg.sigma_floor, out[:, 12:15])
+        tail_weight = cfg.tail_max_weight * torch.sigmoid(out[:, 15])  # (B,)
+    return LSMOutput(s * mean + t, s[:, :, None] * chol, tail_chol, tail_weight)
+
+
+def density_nll(output: LSMOutput, target: torch.Tensor) -> torch.Tensor:
+    """-log p(y | h) per row, (B,): the core Gaussian's NLL, or the core-and-tail mixture's."""
+    core = gaussian_nll(output.mean, output.chol, target)
+    if output.tail_chol is None or output.tail_weight is None:
+        return core
+    tail_cov = output.tail_covariance
+    assert tail_cov is not None
+    tail = gaussian_nll(output.mean, torch.linalg.cholesky(tail_cov), target)
+    a = output.tail_weight
+    return -torch.logsumexp(torch.stack([torch.log1p(-a) - core, torch.log(a) - tail]), dim=0)
 
 
 def gaussian_nll(mean: torch.Tensor, chol: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -285,7 +337,8 @@ def load_checkpoint(directory: Path) -> tuple[LanguageSensorModel, dict[str, Any
 
     directory = Path(directory)
     meta = json.loads((directory / CONFIG_NAME).read_text(encoding="utf-8"))
-    model = LanguageSensorModel(LSMConfig.from_dict(meta["model"]))
+    # A checkpoint's config lists every field; one without "tail" predates the tail (one Gaussian).
+    model = LanguageSensorModel(LSMConfig.from_dict({"tail": False} | meta["model"]))
     model.load_state_dict(load_file(str(directory / WEIGHTS_NAME)), strict=True)
     model.eval()
     return model, meta

@@ -1,11 +1,31 @@
-"""Train the LSM on grounding cases, select on val_seen, calibrate on val_seen, report on both val splits.
+"""Train the LSM on grounding cases; select and calibrate on held-out data of another distribution; report.
 
-The true grounding of a case is `hypotheses[0]`; the label is `target.position`. val_unseen is evaluated
-and reported at every validation but never used to pick a checkpoint or fit the calibration.
+Splits (all grounding-case files; the true grounding of a case is `hypotheses[0]`, the label its
+`target.position`):
+
+- `train`: what the optimiser sees. A share `region_rate` of its cases also teaches a region hypothesis
+  (the target in the room that holds it, or in the whole map: `make_sample` without anchors).
+- `calib`: checkpoint selection (lowest NLL) and the post-hoc calibration. It should come from rooms never
+  trained on and be built differently (the case builder's `calib` split: houses, any yaw, heavier noise);
+  without it, `val_seen` plays that part.
+- `val_seen`, `val_unseen` and any `reports` (e.g. the Sr3D dev set given its true hypotheses): reported,
+  never used to choose anything.
+- `exclude_sources` leaves sources (`meta.source`) out of train, calib and val_seen: the leave-one-source-out
+  runs (train without AI2-THOR, score AI2-THOR in val_unseen, and the reverse). Reports are broken down by
+  source.
+
+Calibration: one covariance scale c_k per relation (and one for region hypotheses), Sigma <- c_k Sigma for
+the core and the tail alike, each the NLL-minimising scale on calib shrunk towards the pooled one in log
+space as if `calibration_prior_cases` more cases had the pooled value (`fit_calibration`). For a single
+Gaussian the NLL-optimal scale is exactly ANEES / 3.
+
+Metrics are those of the served density p(y | h) = (1 - a) N(mu, Sigma) + a N(mu, Sigma + Delta): NLL of
+the density, ANEES of its moment-matched covariance Sigma + a Delta, HDR coverage of the density (Monte
+Carlo), RMSE of mu; beside them the NLL of a uniform density over the case's map box (the no-language
+baseline of `vlmap eval static`).
 
 Outputs in `--out`: `model.safetensors` + `config.json` (the shippable checkpoint, calibration included),
-`metrics.json` / `metrics.md` (LSM before and after calibration and the baselines, overall and per
-relation), `history.jsonl` (one line per validation) and `embeddings.npz` (the frozen text embeddings).
+`metrics.json` / `metrics.md`, `history.jsonl` (one line per validation) and `embeddings.npz`.
 """
 
 from __future__ import annotations
@@ -15,6 +35,7 @@ import logging
 import math
 import random
 import time
+import zlib
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -23,24 +44,31 @@ import numpy as np
 import torch
 
 from app.data.cases import GroundingCase, read_cases
-from app.evaluation.metrics import gaussian_summary, nees
+from app.evaluation.metrics import gaussian_nll, nees
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.interfaces import Grounder
+from app.grounding.mixture import UniformBox
+from app.grounding.parsing import target_noun
 from app.grounding.relations import Relation
 from app.lsm.features import EmbeddingCache, PackedSamples, Sample, make_sample
-from app.lsm.grounder import calibration_scale
-from app.lsm.model import RELATION_INDEX, LanguageSensorModel, LSMConfig, load_checkpoint, save_checkpoint
+from app.lsm.grounder import REGION_KEY, calibration_scale
+from app.lsm.model import LanguageSensorModel, LSMConfig, load_checkpoint, save_checkpoint
 from app.lsm.text_encoder import MINILM_SHA256, TextEncoder
 
 log = logging.getLogger(__name__)
-RELATION_NAMES = {index: relation.value for relation, index in RELATION_INDEX.items()}
+MASSES = (0.5, 0.9, 0.95)
+_HDR_DRAWS = 1000
 
 
 @dataclass
 class DataConfig:
     train: str
-    val_seen: str
+    val_seen: str | None = None
     val_unseen: str | None = None
+    calib: str | None = None  # selection and calibration; val_seen when None
+    reports: dict[str, str] = field(default_factory=dict)  # more report-only case files, by name
+    exclude_sources: list[str] = field(default_factory=list)  # left out of train, calib and val_seen
+    region_rate: float = 0.25  # share of cases that also give a region sample
     max_train_cases: int | None = None  # first N cases of the train file (for quick runs)
     embedding_cache: str | None = None  # .npz; default <out>/embeddings.npz
 
@@ -79,8 +107,12 @@ class TrainConfig:
                 else "training config needs a data section"
             )
             raise ValueError(msg)
+        data = DataConfig(**values["data"])
+        if data.calib is None and data.val_seen is None:
+            msg = "training config: data needs calib (or val_seen) for checkpoint selection and calibration"
+            raise ValueError(msg)
         return cls(
-            data=DataConfig(**values["data"]),
+            data=data,
             model=LSMConfig.from_dict(values.get("model", {})),
             optim=OptimConfig(**values.get("optim", {})),
             version=str(values.get("version", "dev")),
@@ -96,106 +128,298 @@ class TrainConfig:
 
 @dataclass
 class Split:
-    """Featurised cases of one file (plus the cases themselves for the baselines, on validation splits)."""
+    """Featurised cases of one file: samples with their group (relation, or "region") and source."""
 
     name: str
     samples: list[Sample]
-    relations: list[str]
-    cases: list[GroundingCase]
+    groups: list[str]
+    sources: list[str]
+    cases: list[GroundingCase]  # the case of each object sample (for the baselines), when kept
     skipped: int
+    map_log_volumes: np.ndarray  # (S,) log vol of each sample's map box: the uniform baseline's NLL
+
+    @property
+    def targets(self) -> np.ndarray:
+        """(S, 3) world positions."""
+        return np.stack([s.to_world(s.target, np.eye(3))[0] for s in self.samples if s.target is not None])
+
+
+def target_region(case: GroundingCase) -> str | None:
+    """The smallest region whose box holds the target, or None (the map)."""
+    y = np.asarray(case.target.position, dtype=np.float64)
+    holding = [
+        (float(np.prod(r.size)), r.id)
+        for r in case.scene_graph.regions
+        if np.all(np.abs(y - np.asarray(r.center)) <= 0.5 * np.asarray(r.size))
+    ]
+    return min(holding)[1] if holding else None
+
+
+def map_log_volume(case: GroundingCase) -> float:
+    """log vol of the objects' bounding box (sides at least 0.1 m): -log of the uniform baseline's density."""
+    objects = case.scene_graph.objects
+    low = np.min([o.min_corner for o in objects], axis=0)
+    high = np.max([o.max_corner for o in objects], axis=0)
+    return math.log(UniformBox.around(low, high).volume)
+
+
+def _takes_region(case_id: str, rate: float) -> bool:
+    """Whether a case also gives a region sample: a fixed pseudo-random share `rate` of the case ids."""
+    return rate > 0 and zlib.crc32(case_id.encode()) / 2**32 < rate
 
 
 def load_split(
-    name: str, path: str, cfg: LSMConfig, limit: int | None = None, keep_cases: bool = False
+    name: str,
+    path: str,
+    cfg: LSMConfig,
+    limit: int | None = None,
+    keep_cases: bool = False,
+    exclude_sources: tuple[str, ...] = (),
+    region_rate: float = 0.0,
 ) -> Split:
-    """Cases with a ground-truth hypothesis whose anchors exist -> samples; the others count as skipped."""
+    """Cases with a ground-truth hypothesis whose anchors exist -> samples; the others count as skipped.
+
+    The text of each sample is `hypothesis_text` of the target's name as the utterance says it.
+    """
     samples: list[Sample] = []
-    relations: list[str] = []
+    groups: list[str] = []
+    sources: list[str] = []
     cases: list[GroundingCase] = []
+    volumes: list[float] = []
     skipped = 0
     for case in read_cases(path):
         if limit is not None and len(samples) >= limit:
             break
+        source = str(case.meta.get("source", "unknown"))
         truth = case.hypotheses[0] if case.hypotheses else None
         known = {o.id for o in case.scene_graph.objects}
-        if truth is None or not set(truth.anchor_ids) <= known:
+        if source in exclude_sources or truth is None or not set(truth.anchor_ids) <= known:
             skipped += 1
             continue
-        samples.append(
-            make_sample(
-                case.scene_graph, truth.anchor_ids, truth.relation, case.utterance, cfg, case.target.position
-            )
-        )
-        relations.append(truth.relation.value)
+        regions = tuple(r.name.lower() for r in case.scene_graph.regions if r.name)
+        target = target_noun(case.utterance, regions) or case.target.label
+        volume = map_log_volume(case)
+        position = case.target.position
+        samples.append(make_sample(case.scene_graph, truth.anchor_ids, truth.relation, target, cfg, position))
+        groups.append(truth.relation.value)
+        sources.append(source)
+        volumes.append(volume)
         if keep_cases:
             cases.append(case)
+        if _takes_region(case.case_id, region_rate):
+            region = target_region(case)
+            samples.append(make_sample(case.scene_graph, (), Relation.IN, target, cfg, position, region))
+            groups.append(REGION_KEY)
+            sources.append(source)
+            volumes.append(volume)
     if not samples:
         msg = (
             f"{path}: no usable grounding cases (need hypotheses[0] with anchors present in the scene graph)"
         )
         raise ValueError(msg)
-    return Split(name, samples, relations, cases, skipped)
+    return Split(name, samples, groups, sources, cases, skipped, np.asarray(volumes))
+
+
+# --- predictions and their scores --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Densities:
+    """Per sample p(y | h) = (1 - a) N(mu, Sigma) + a N(mu, Sigma_tail), world frame; a = 0 without a tail."""
+
+    means: np.ndarray  # (S, 3)
+    core: np.ndarray  # (S, 3, 3)
+    tail: np.ndarray  # (S, 3, 3)
+    weights: np.ndarray  # (S,) a
+
+    def scaled(self, scales: np.ndarray) -> Densities:
+        """Every covariance of sample i times scales[i]."""
+        c = np.asarray(scales, dtype=np.float64)[:, None, None]
+        return Densities(self.means, self.core * c, self.tail * c, self.weights)
+
+    def take(self, index: np.ndarray) -> Densities:
+        return Densities(self.means[index], self.core[index], self.tail[index], self.weights[index])
+
+    @property
+    def moment_covariances(self) -> np.ndarray:
+        """(1 - a) Sigma + a Sigma_tail, (S, 3, 3)."""
+        a = self.weights[:, None, None]
+        return (1.0 - a) * self.core + a * self.tail
+
+    def nll(self, targets: np.ndarray) -> np.ndarray:
+        """-log p(y_i | h_i), (S,)."""
+        core = -gaussian_nll(self.means, self.core, targets)
+        tail = -gaussian_nll(self.means, self.tail, targets)
+        with np.errstate(divide="ignore"):
+            terms = np.stack([np.log1p(-self.weights) + core, np.log(self.weights) + tail])  # (2, S)
+        peak = terms.max(axis=0)
+        return -(peak + np.log(np.exp(terms - peak).sum(axis=0)))
+
+    def coverage(self, targets: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Whether y_i lies in the density's HDR of each mass in `MASSES`, (S, M), by `_HDR_DRAWS` draws."""
+        out = np.empty((len(self.means), len(MASSES)), dtype=bool)
+        levels = 1.0 - np.asarray(MASSES)
+        for start in range(0, len(self.means), 256):
+            part = self.take(np.arange(start, min(start + 256, len(self.means))))
+            n = len(part.means)
+            normal = rng.standard_normal((n, _HDR_DRAWS, 3))
+            in_tail = rng.uniform(size=(n, _HDR_DRAWS)) < part.weights[:, None]
+            chol = np.where(
+                in_tail[..., None, None],
+                np.linalg.cholesky(part.tail)[:, None],
+                np.linalg.cholesky(part.core)[:, None],
+            )
+            draws = part.means[:, None] + np.einsum("sdij,sdj->sdi", chol, normal)  # (n, D, 3)
+            log_p = -part._nll_many(draws)  # (n, D)
+            thresholds = np.quantile(log_p, levels, axis=1).T  # (n, M)
+            log_y = -part.nll(targets[start : start + n])  # (n,)
+            out[start : start + n] = log_y[:, None] >= thresholds
+        return out
+
+    def _nll_many(self, points: np.ndarray) -> np.ndarray:
+        """-log p(x) of points (S, D, 3), one density per row, (S, D)."""
+        s, d, _ = points.shape
+        repeat = np.repeat(np.arange(s), d)
+        flat = self.take(repeat)
+        return flat.nll(points.reshape(-1, 3)).reshape(s, d)
 
 
 def predict(
-    model: LanguageSensorModel, packed: PackedSamples, batch_size: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Uncalibrated means (S, 3) and covariances (S, 3, 3), float64."""
+    model: LanguageSensorModel, packed: PackedSamples, samples: list[Sample], batch_size: int
+) -> Densities:
+    """Uncalibrated densities of every sample, in the world frame."""
     model.eval()
-    means, covs = [], []
+    means, core, tail, weights = [], [], [], []
     with torch.inference_mode():
         for start in range(0, len(packed), batch_size):
             out = model(packed.batch(slice(start, start + batch_size)))
             means.append(out.mean.double().numpy())
-            covs.append(out.covariance.double().numpy())
-    return np.concatenate(means), np.concatenate(covs)
+            core.append(out.covariance.double().numpy())
+            tail_cov = out.tail_covariance
+            tail.append((tail_cov if tail_cov is not None else out.covariance).double().numpy())
+            a = out.tail_weight
+            weights.append(np.zeros(len(out.mean)) if a is None else a.double().numpy())
+    local = Densities(
+        np.concatenate(means), np.concatenate(core), np.concatenate(tail), np.concatenate(weights)
+    )
+    world_means = np.empty_like(local.means)
+    world_core, world_tail = np.empty_like(local.core), np.empty_like(local.tail)
+    for i, sample in enumerate(samples):
+        world_means[i], pair = sample.to_world(local.means[i], np.stack([local.core[i], local.tail[i]]))
+        world_core[i], world_tail[i] = pair
+    return Densities(world_means, world_core, world_tail, local.weights)
+
+
+def density_summary(
+    densities: Densities, targets: np.ndarray, map_log_volumes: np.ndarray, rng: np.random.Generator | None
+) -> dict[str, Any]:
+    """n, RMSE, NLL (mean, median), the uniform baseline and the share better than it, ANEES (moment
+    matched; mean, median), and with `rng` the HDR coverage of each mass."""
+    errors = np.linalg.norm(densities.means - targets, axis=1)
+    nll = densities.nll(targets)
+    per_case = nees(densities.means, densities.moment_covariances, targets)
+    out: dict[str, Any] = {
+        "n": len(errors),
+        "rmse": float(np.sqrt(np.mean(errors**2))),
+        "nll_mean": float(np.mean(nll)),
+        "nll_median": float(np.median(nll)),
+        "uniform_nll": float(np.mean(map_log_volumes)),
+        "better_than_uniform": float(np.mean(nll < map_log_volumes)),
+        "anees": float(np.mean(per_case)),
+        "nees_median": float(np.median(per_case)),
+        "tail_weight_mean": float(np.mean(densities.weights)),
+    }
+    if rng is not None:
+        covered = densities.coverage(targets, rng)
+        out["coverage"] = {str(m): float(np.mean(covered[:, j])) for j, m in enumerate(MASSES)}
+    return out
 
 
 def summarize(
-    means: np.ndarray, covs: np.ndarray, targets: np.ndarray, relations: list[str]
+    densities: Densities, split: Split, rng: np.random.Generator | None, index: np.ndarray | None = None
 ) -> dict[str, Any]:
-    """Overall and per-relation `gaussian_summary`."""
-    rel = np.asarray(relations)
-    per_relation = {
-        r: gaussian_summary(means[rel == r], covs[rel == r], targets[rel == r])
-        for r in sorted(set(relations))
+    """Object hypotheses overall, then per group (relations and "region") and per source."""
+    groups, sources = np.asarray(split.groups), np.asarray(split.sources)
+    targets, volumes = split.targets, split.map_log_volumes
+    if index is not None:
+        groups, sources, targets, volumes = groups[index], sources[index], targets[index], volumes[index]
+
+    def part(mask: np.ndarray) -> dict[str, Any]:
+        return density_summary(densities.take(mask), targets[mask], volumes[mask], rng)
+
+    objects = groups != REGION_KEY
+    return {
+        "overall": part(objects) if objects.any() else {"n": 0},
+        "per_relation": {g: part(groups == g) for g in sorted(set(groups.tolist()))},
+        "per_source": {
+            s: part(objects & (sources == s))
+            for s in sorted(set(sources.tolist()))
+            if (objects & (sources == s)).any()
+        },
     }
-    return {"overall": gaussian_summary(means, covs, targets), "per_relation": per_relation}
 
 
 def fit_calibration(
-    means: np.ndarray, covs: np.ndarray, targets: np.ndarray, relations: list[str], prior_cases: float = 50.0
+    densities: Densities, targets: np.ndarray, groups: list[str], prior_cases: float = 50.0
 ) -> dict[str, Any]:
-    """Covariance scales c_r such that Sigma <- c_r Sigma brings ANEES to 3 (NEES scales as 1/c).
-
-    c = ANEES / 3 over all cases; c_r = (n_r ANEES_r + k ANEES) / (3 (n_r + k)): each relation's own ANEES,
-    shrunk towards the pooled one as if k = `prior_cases` more cases had the pooled value, so that a relation
-    with few calibration cases (e.g. 41 "in" cases in val_seen) does not get a noisy scale.
-    """
-    per_case = nees(means, covs, targets)
-    rel = np.asarray(relations)
-    pooled = float(np.mean(per_case))
-    per_relation, counts = {}, {}
-    for r in sorted(set(relations)):
-        values = per_case[rel == r]
-        counts[r] = len(values)
-        per_relation[r] = float((values.sum() + prior_cases * pooled) / (3.0 * (len(values) + prior_cases)))
+    """Covariance scales c_k per group k: the NLL-minimising scale of every covariance of the group's
+    densities, shrunk towards the pooled one, log c_k = (n_k log c^_k + K log c^) / (n_k + K), K =
+    `prior_cases`, so that a group with few calibration cases does not get a noisy scale."""
+    names = np.asarray(groups)
+    pooled = _nll_optimal_scale(densities, targets)
+    per_group, counts = {}, {}
+    for g in sorted(set(groups)):
+        mask = names == g
+        own = _nll_optimal_scale(densities.take(mask), targets[mask])
+        n = int(mask.sum())
+        counts[g] = n
+        per_group[g] = float(
+            math.exp((n * math.log(own) + prior_cases * math.log(pooled)) / (n + prior_cases))
+        )
     return {
-        "method": "covariance scale per relation, c_r = ANEES_r / 3 on val_seen shrunk to the pooled ANEES",
+        "method": "covariance scale per relation (and for region hypotheses): the NLL-optimal scale on the "
+        "calibration split, shrunk to the pooled one in log space",
         "prior_cases": prior_cases,
-        "overall": pooled / 3.0,
-        "per_relation": per_relation,
+        "overall": pooled,
+        "per_relation": per_group,
         "cases": counts,
     }
 
 
-def apply_calibration(covs: np.ndarray, relations: list[str], calibration: dict[str, Any]) -> np.ndarray:
-    scales = np.array([calibration_scale(calibration, Relation(r)) for r in relations])
-    return covs * scales[:, None, None]
+def _nll_optimal_scale(densities: Densities, targets: np.ndarray) -> float:
+    """argmin_c sum_i -log p_i(y_i) with every covariance times c (golden-section search on log c)."""
+    core_m = nees(densities.means, densities.core, targets)
+    tail_m = nees(densities.means, densities.tail, targets)
+    core_det = np.linalg.slogdet(densities.core)[1]
+    tail_det = np.linalg.slogdet(densities.tail)[1]
+    log_w = np.log1p(-densities.weights)
+    with np.errstate(divide="ignore"):
+        log_a = np.log(densities.weights)
+
+    def total(log_c: float) -> float:
+        c = math.exp(log_c)
+        core = log_w - 0.5 * (core_det + 3 * log_c + core_m / c)
+        tail = log_a - 0.5 * (tail_det + 3 * log_c + tail_m / c)
+        peak = np.maximum(core, tail)
+        return float(-np.sum(peak + np.log(np.exp(core - peak) + np.exp(tail - peak))))
+
+    low, high = -4.0, 4.0
+    ratio = 0.5 * (math.sqrt(5.0) - 1.0)
+    for _ in range(60):
+        a, b = high - ratio * (high - low), low + ratio * (high - low)
+        if total(a) < total(b):
+            high = b
+        else:
+            low = a
+    return math.exp(0.5 * (low + high))
 
 
-def ground_cases(grounder: Grounder, cases: list[GroundingCase]) -> tuple[np.ndarray, np.ndarray]:
-    """Any grounder's Gaussian for each case's ground-truth hypothesis."""
+def apply_calibration(densities: Densities, groups: list[str], calibration: dict[str, Any]) -> Densities:
+    return densities.scaled(np.array([calibration_scale(calibration, g) for g in groups]))
+
+
+def ground_cases(grounder: Grounder, cases: list[GroundingCase]) -> Densities:
+    """Any grounder's density for each case's ground-truth hypothesis (moment-matched into one Gaussian)."""
     means, covs = [], []
     for case in cases:
         if not case.hypotheses:
@@ -206,17 +430,18 @@ def ground_cases(grounder: Grounder, cases: list[GroundingCase]) -> tuple[np.nda
         density = grounder.ground(case.scene_graph, case.utterance, [hypothesis])[0]
         means.append(density.mean())
         covs.append(density.covariance())
-    return np.asarray(means, dtype=np.float64), np.asarray(covs, dtype=np.float64)
+    core = np.asarray(covs, dtype=np.float64)
+    return Densities(np.asarray(means, dtype=np.float64), core, core, np.zeros(len(core)))
 
 
 def baseline_grounders() -> dict[str, Grounder]:
-    """The hand-written baselines of `app.grounding.geometric`, when that module is present."""
-    try:
-        from app.grounding.geometric import FixedGrounder, GeometricGrounder
-    except ImportError:
-        log.warning("app.grounding.geometric is not importable: the report has no baselines")
-        return {}
+    """The hand-written baselines of `app.grounding.geometric`."""
+    from app.grounding.geometric import FixedGrounder, GeometricGrounder
+
     return {"geometric": GeometricGrounder(), "fixed_0.1m": FixedGrounder()}
+
+
+# --- the training loop --------------------------------------------------------------------------------------
 
 
 def lr_at(step: int, total_steps: int, cfg: OptimConfig) -> float:
@@ -259,7 +484,7 @@ def seed_everything(seed: int) -> None:
 
 
 def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
-    """Train, keep the best val_seen NLL checkpoint, calibrate it on val_seen, write it and its report."""
+    """Train, keep the checkpoint of lowest calib NLL, calibrate it on calib, write it and its report."""
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
@@ -283,7 +508,7 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
     steps_per_epoch = math.ceil(len(train_set) / opt.batch_size)
     total_steps = steps_per_epoch * opt.epochs
     generator = torch.Generator().manual_seed(opt.seed)
-    history, best = [], {"nll": math.inf, "step": -1}
+    best: dict[str, Any] = {"nll": math.inf, "step": -1}
     best_state: dict[str, torch.Tensor] = {}
     train_s, seen, step = 0.0, 0, 0
     bar = tqdm(total=total_steps, desc="train", unit="step", dynamic_ncols=True)
@@ -309,23 +534,20 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
             if step % opt.eval_every_steps == 0 or start + opt.batch_size >= len(train_set):
                 record = _validate(model, packed, splits, opt.eval_batch_size)
                 record.update(step=step, epoch=epoch, train_loss=loss.item(), samples_per_s=seen / train_s)
-                history.append(record)
                 with (out_dir / "history.jsonl").open("a", encoding="utf-8") as fh:
                     fh.write(json.dumps(record) + "\n")
                 bar.write(_format_record(record))
-                if record["val_seen"]["nll_mean"] < best["nll"]:
-                    best = {"nll": record["val_seen"]["nll_mean"], "step": step, "epoch": epoch}
+                if record["calib"]["nll_all"] < best["nll"]:
+                    best = {"nll": record["calib"]["nll_all"], "step": step, "epoch": epoch}
                     best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
     bar.close()
     model.load_state_dict(best_state)
 
-    seen_split = splits["val_seen"]
-    means, covs = predict(model, packed["val_seen"], opt.eval_batch_size)
-    calibration = fit_calibration(
-        means, covs, _targets(seen_split), seen_split.relations, config.calibration_prior_cases
-    )
+    calib = splits["calib"]
+    densities = predict(model, packed["calib"], calib.samples, opt.eval_batch_size)
+    calibration = fit_calibration(densities, calib.targets, calib.groups, config.calibration_prior_cases)
     training = {
-        "data": {n: {"cases": len(s.samples), "skipped": s.skipped} for n, s in splits.items()},
+        "data": {n: {"samples": len(s.samples), "skipped_cases": s.skipped} for n, s in splits.items()},
         "files": asdict(config.data),
         "optim": asdict(opt),
         "steps": step,
@@ -359,9 +581,9 @@ def evaluate_checkpoint(
     packed: dict[str, PackedSamples] | None = None,
     cache_dir: Path | None = None,
 ) -> dict[str, Any]:
-    """The saved checkpoint (raw and calibrated) and the baselines on val_seen and val_unseen.
+    """The saved checkpoint (calibrated and raw) and the baselines on every split but train.
 
-    Without `splits`/`packed` the validation files of `config` are read, with text embeddings cached in
+    Without `splits`/`packed` the config's files are read, with text embeddings cached in
     `config.data.embedding_cache` or else `cache_dir`/embeddings.npz.
     """
     model, meta = load_checkpoint(Path(model_dir))
@@ -376,36 +598,56 @@ def evaluate_checkpoint(
         "calibration": meta.get("calibration"),
         "splits": {},
     }
-    for name in ("val_seen", "val_unseen"):
-        if name not in splits:
+    for name, split in splits.items():
+        if name == "train":
             continue
-        split = splits[name]
-        targets = _targets(split)
-        means, covs = predict(model, packed[name], config.optim.eval_batch_size)
+        rng = np.random.default_rng(zlib.crc32(name.encode()))
+        raw = predict(model, packed[name], split.samples, config.optim.eval_batch_size)
+        calibrated = apply_calibration(raw, split.groups, meta.get("calibration", {}))
         methods = {
-            "lsm": summarize(
-                means,
-                apply_calibration(covs, split.relations, meta.get("calibration", {})),
-                targets,
-                split.relations,
-            ),
-            "lsm_uncalibrated": summarize(means, covs, targets, split.relations),
+            "lsm": summarize(calibrated, split, rng),
+            "lsm_uncalibrated": summarize(raw, split, None),
         }
+        objects = np.flatnonzero(np.asarray(split.groups) != REGION_KEY)
         for label, grounder in baselines.items():
-            b_means, b_covs = ground_cases(grounder, split.cases)
-            methods[label] = summarize(b_means, b_covs, targets, split.relations)
+            methods[label] = summarize(ground_cases(grounder, split.cases), split, None, objects)
         report["splits"][name] = methods
     return report
 
 
 def _load_splits(config: TrainConfig, include_train: bool = True) -> dict[str, Split]:
     data, cfg = config.data, config.model
+    excluded = tuple(data.exclude_sources)
     splits = {}
     if include_train:
-        splits["train"] = load_split("train", data.train, cfg, limit=data.max_train_cases)
-    splits["val_seen"] = load_split("val_seen", data.val_seen, cfg, keep_cases=True)
+        splits["train"] = load_split(
+            "train",
+            data.train,
+            cfg,
+            data.max_train_cases,
+            exclude_sources=excluded,
+            region_rate=data.region_rate,
+        )
+    calib = data.calib or data.val_seen
+    assert calib is not None  # TrainConfig.from_dict checks it
+    splits["calib"] = load_split(
+        "calib", calib, cfg, keep_cases=True, exclude_sources=excluded, region_rate=data.region_rate
+    )
+    if data.val_seen and data.calib:
+        splits["val_seen"] = load_split(
+            "val_seen",
+            data.val_seen,
+            cfg,
+            keep_cases=True,
+            exclude_sources=excluded,
+            region_rate=data.region_rate,
+        )
     if data.val_unseen:
-        splits["val_unseen"] = load_split("val_unseen", data.val_unseen, cfg, keep_cases=True)
+        splits["val_unseen"] = load_split(
+            "val_unseen", data.val_unseen, cfg, keep_cases=True, region_rate=data.region_rate
+        )
+    for name, path in data.reports.items():
+        splits[name] = load_split(name, path, cfg, keep_cases=True)
     return splits
 
 
@@ -417,29 +659,28 @@ def _embedding_cache(config: TrainConfig, out_dir: Path | None) -> EmbeddingCach
     return EmbeddingCache(path, MINILM_SHA256, lambda: TextEncoder(precision="float32").encode)
 
 
-def _targets(split: Split) -> np.ndarray:
-    return np.stack([s.target for s in split.samples if s.target is not None]).astype(np.float64)
-
-
 def _validate(
     model: LanguageSensorModel, packed: dict[str, PackedSamples], splits: dict[str, Split], batch_size: int
 ) -> dict[str, Any]:
+    """calib's NLL over every sample (`nll_all`, what selects the checkpoint) and each report split's
+    summary of its object hypotheses."""
     record: dict[str, Any] = {}
-    for name in ("val_seen", "val_unseen"):
-        if name in packed:
-            means, covs = predict(model, packed[name], batch_size)
-            summary = summarize(means, covs, _targets(splits[name]), splits[name].relations)
-            record[name] = summary["overall"] | {
-                "anees_per_relation": {r: v["anees"] for r, v in summary["per_relation"].items()}
-            }
+    for name, split in splits.items():
+        if name == "train":
+            continue
+        densities = predict(model, packed[name], split.samples, batch_size)
+        summary = summarize(densities, split, None)
+        record[name] = summary["overall"] | {
+            "anees_per_relation": {r: v["anees"] for r, v in summary["per_relation"].items()},
+            "nll_all": float(np.mean(densities.nll(split.targets))),
+        }
     return record
 
 
 def _format_record(record: dict[str, Any]) -> str:
     parts = [f"step {record['step']} epoch {record['epoch']} loss {record['train_loss']:.3f}"]
-    for name in ("val_seen", "val_unseen"):
-        if name in record:
-            r = record[name]
+    for name, r in record.items():
+        if isinstance(r, dict) and "rmse" in r:
             parts.append(f"{name}: rmse {r['rmse']:.3f} nll {r['nll_mean']:.3f} anees {r['anees']:.2f}")
     return " | ".join(parts)
 
@@ -450,26 +691,48 @@ def write_report(report: dict[str, Any], out_dir: Path) -> None:
 
 
 def format_report(report: dict[str, Any]) -> str:
-    """Markdown tables: one per split, rows = method x (overall, relations), RMSE / NLL / ANEES."""
+    """Markdown tables: one per split, rows = method x (overall, relations, sources)."""
     lines = []
     for split, methods in report["splits"].items():
         lines += [
             f"### {split}",
             "",
-            "| method | relation | n | RMSE (m) | NLL (nats) | ANEES |",
-            "|---|---|---|---|---|---|",
+            "| method | group | n | RMSE (m) | NLL (nats) | uniform NLL | better than uniform | ANEES | "
+            "0.9 HDR coverage |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
         for method, summary in methods.items():
             rows = [("all", summary["overall"]), *sorted(summary["per_relation"].items())]
-            for relation, s in rows:
+            rows += [(f"source {k}", v) for k, v in sorted(summary["per_source"].items())]
+            for group, s in rows:
+                if not s.get("n"):
+                    continue
+                coverage = s.get("coverage", {}).get("0.9")
                 cells = [
                     method,
-                    relation,
+                    group,
                     str(s["n"]),
                     f"{s['rmse']:.3f}",
                     f"{s['nll_mean']:.2f}",
+                    f"{s['uniform_nll']:.2f}",
+                    f"{s['better_than_uniform']:.2f}",
                     f"{s['anees']:.2f}",
+                    "" if coverage is None else f"{coverage:.3f}",
                 ]
                 lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
+
+
+__all__ = [
+    "DataConfig",
+    "Densities",
+    "OptimConfig",
+    "TrainConfig",
+    "evaluate_checkpoint",
+    "fit_calibration",
+    "load_split",
+    "predict",
+    "train",
+    "write_report",
+]
