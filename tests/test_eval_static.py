@@ -649,6 +649,69 @@ def test_cli_builtin_proposer_adds_referent_metrics(tmp_path: Path) -> None:
     assert is_png(out / "reliability.png")
 
 
+# Keys of metrics.json and per_case.jsonl as other tools read them before the no-language baseline came
+# (taken from a run of that code): they stay, new keys come beside them.
+OLD_TOP_KEYS = {"config", "referent", "run"}
+OLD_CONFIG_KEYS = {
+    *("cases", "describe", "grounder", "hdr_samples", "max_cases", "methods", "n", "proposer"),
+    *("proposer_impl", "seed"),
+}
+OLD_RUN_KEYS = {"evaluated", "proposer_failures", "read", "skipped_without_truth"}
+OLD_METHOD_KEYS = {"failures", "overall", "per_ambiguity", "per_relation", "seconds"}
+OLD_SUMMARY_KEYS = {"anees", "anees_n", "coverage", "n", "nll", "nll_median", "rmse", "unmatched"}
+OLD_REFERENT_KEYS = {"absent", "ece", "mean_hypotheses", "n", "top1_accuracy", "true_hypothesis_nll"}
+OLD_ROW_KEYS = {"ambiguity", "case_id", "relation"}
+OLD_ROW_METHOD_KEYS = {"components", "covered", "error_m", "nees", "nll"}
+NEW_SUMMARY_KEYS = {
+    *("uniform_nll", "uniform_outside", "better_than_uniform", "nll_minus_uniform"),
+    *("worst_excess_over_uniform", "anees_full"),
+}
+
+
+def strict_json(text: str) -> Any:
+    """json.loads refusing NaN and Infinity, which strict readers of the contract cannot parse."""
+
+    def refuse(name: str) -> None:
+        raise ValueError(name)
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_cli_output_keeps_every_old_key_and_adds_the_baseline(tmp_path: Path, capsys: Any) -> None:
+    out = tmp_path / "compat"
+    args = ("--grounder", "geometric", "--baselines", "--proposer", "builtin", "--max-cases", "10")
+    assert run_cli(*args, "--out", str(out)) == 0
+    metrics = strict_json((out / "metrics.json").read_text())
+    assert set(metrics) >= OLD_TOP_KEYS
+    assert set(metrics["config"]) >= OLD_CONFIG_KEYS and set(metrics["run"]) >= OLD_RUN_KEYS
+    assert OLD_REFERENT_KEYS | {"reliability", "ungrounded"} <= set(metrics["referent"]["overall"])
+    for method in ("geometric", "fixed"):
+        assert set(metrics[method]) >= OLD_METHOD_KEYS
+        groups = [
+            metrics[method]["overall"],
+            *metrics[method]["per_relation"].values(),
+            *metrics[method]["per_ambiguity"].values(),
+        ]
+        for summary in groups:
+            assert OLD_SUMMARY_KEYS | {"uniform_weights_nll"} | NEW_SUMMARY_KEYS <= set(summary)
+            assert set(summary["coverage"]) == {"0.5", "0.9", "0.95"}
+            assert 0.0 <= summary["better_than_uniform"] <= 1.0
+    rows = [strict_json(line) for line in (out / "per_case.jsonl").read_text().splitlines()]
+    assert len(rows) == 10
+    for row in rows:
+        assert OLD_ROW_KEYS | {"referent", "uniform_nll"} <= set(row)
+        for method in ("geometric", "fixed"):
+            assert OLD_ROW_METHOD_KEYS | {"better_than_uniform", "nees_full"} <= set(row[method])
+            assert row[method]["better_than_uniform"] == (
+                row["uniform_nll"] is None or row[method]["nll"] < row["uniform_nll"]
+            )
+    report = (out / "report.md").read_text()
+    assert "NLL U" in report and "< U" in report and "## Against no language" in report
+    assert "| all | geometric | 10 |" in report and "worst excess" in report
+    assert report in capsys.readouterr().out
+    assert is_png(out / "nll_minus_uniform.png")
+
+
 def test_cli_lsm_without_weights_fails_clearly(tmp_path: Path) -> None:
     with pytest.raises(SystemExit) as exc:
         run_cli("--grounder", "lsm", "--model-dir", str(tmp_path), "--out", str(tmp_path / "out"))

@@ -21,7 +21,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "static",
         help="score a grounder (and baselines) on a grounding-case file",
         description="Ground every case of a grounding-case file (JSONL) through the language sensor and "
-        "write DIR/metrics.json (RMSE, NLL, ANEES, HDR coverage overall, per relation and per ambiguity; "
+        "write DIR/metrics.json (RMSE, NLL beside the no-language baseline's, ANEES, HDR coverage overall, "
+        "per relation and per ambiguity; "
         "the proposer's top-1 accuracy, true-hypothesis NLL and ECE), DIR/report.md, DIR/per_case.jsonl "
         "and calibration plots (PNG). LLM endpoints: --llm-url/--llm-model or VLMAP_LLM_URL, "
         "VLMAP_LLM_MODEL, VLMAP_LLM_API_KEY.",
@@ -79,7 +80,7 @@ def static_command(args: argparse.Namespace) -> int:
             fh.write(json.dumps(row) + "\n")
     report = format_report(result.metrics)
     (out / "report.md").write_text(report, encoding="utf-8")
-    plots = write_plots(result.metrics, out)
+    plots = write_plots(result.metrics, out, result.per_case)
     print(report)
     print(f"wrote {out}/metrics.json, report.md, per_case.jsonl, " + ", ".join(p.name for p in plots))
     return 0

@@ -1,7 +1,9 @@
 """The static evaluation's report: Markdown tables (methods x metrics) and PNG calibration plots.
 
-Both read only the metrics dictionary `app.evaluation.static` writes as metrics.json, so a report can be
-redrawn from a saved file.
+Both read only what `app.evaluation.static` writes (the metrics dictionary of metrics.json, and for the
+histogram of NLL - uniform_nll the rows of per_case.jsonl), so a report can be redrawn from saved files.
+Every NLL stands beside the no-language baseline ("NLL U", the uniform density over the map's box) and the
+share of cases that beat it ("< U").
 """
 
 from __future__ import annotations
@@ -41,10 +43,10 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1) 
 
 
 def _metric_header(with_uniform: bool, with_matched: bool) -> list[str]:
-    header = ["n", "RMSE (m)", "NLL", "ANEES"]
+    header = ["n", "RMSE (m)", "NLL", "NLL U", "< U", "ANEES"]
     if with_matched:
         header.append("ANEES n")
-    header += [f"cov {m:g}" for m in DEFAULT_MASSES]
+    header += ["ANEES full", *(f"cov {m:g}" for m in DEFAULT_MASSES)]
     if with_uniform:
         header.append("NLL, uniform w")
     return header
@@ -56,14 +58,63 @@ def _metric_cells(summary: dict[str, Any], with_uniform: bool, with_matched: boo
         str(summary.get("n", 0)),
         _number(summary.get("rmse"), 3),
         _number(summary.get("nll"), 2),
+        _number(summary.get("uniform_nll"), 2),
+        _number(summary.get("better_than_uniform"), 3),
         _number(summary.get("anees"), 2),
     ]
     if with_matched:
         cells.append(str(summary.get("anees_n", 0)))
+    cells.append(_number(summary.get("anees_full"), 2))
     cells += [_number(coverage.get(str(m)), 3) for m in DEFAULT_MASSES]
     if with_uniform:
         cells.append(_number(summary.get("uniform_weights_nll"), 2))
     return cells
+
+
+def _groups(metrics: dict[str, Any], methods: Sequence[str]) -> list[tuple[str, str, str]]:
+    """(label, metrics key, group name): overall, then every relation, then every ambiguity level."""
+    out = [("all", "overall", "")]
+    for key, title in (("per_relation", "relation"), ("per_ambiguity", "ambiguity")):
+        names = dict.fromkeys(g for m in methods for g in metrics[m].get(key, {}))
+        out += [(f"{title} {g}", key, g) for g in names]
+    return out
+
+
+def _baseline_table(metrics: dict[str, Any], methods: Sequence[str]) -> list[str]:
+    """Group x method: NLL against the no-language baseline, the mean and the worst excess over it."""
+    header = ["group", "method", "n", "NLL", "NLL U", "< U", "NLL - U", "worst excess", "outside U"]
+    rows = []
+    for label, key, group in _groups(metrics, methods):
+        for m in methods:
+            summary = metrics[m][key] if key == "overall" else metrics[m].get(key, {}).get(group)
+            if not summary or "better_than_uniform" not in summary:
+                continue
+            rows.append(
+                [
+                    label,
+                    m,
+                    str(summary["n"]),
+                    _number(summary.get("nll"), 2),
+                    _number(summary.get("uniform_nll"), 2),
+                    _number(summary.get("better_than_uniform"), 3),
+                    _number(summary.get("nll_minus_uniform"), 2),
+                    _number(summary.get("worst_excess_over_uniform"), 2),
+                    str(summary.get("uniform_outside", 0)),
+                ]
+            )
+    if not rows:
+        return []
+    return [
+        "## Against no language",
+        "",
+        *_table(header, rows, left=2),
+        "",
+        "NLL U: -log of the uniform density over the map's box (every object box, sides >= 0.1 m), what is "
+        "known without the utterance; < U: share of cases with a lower NLL; NLL - U (mean) and worst "
+        "excess (max) over the cases inside the box; outside U: targets outside it (NLL U infinite, "
+        "counted in < U).",
+        "",
+    ]
 
 
 def format_report(metrics: dict[str, Any]) -> str:
@@ -109,6 +160,8 @@ def format_report(metrics: dict[str, Any]) -> str:
         ]
         lines += [*_table(header, rows, left=2), ""]
 
+    lines += _baseline_table(metrics, methods)
+
     referent = metrics.get("referent")
     if referent:
         lines += ["## Referent: the proposer's weights", ""]
@@ -153,14 +206,56 @@ def format_report(metrics: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def write_plots(metrics: dict[str, Any], out_dir: Path) -> list[Path]:
-    """anees_per_relation.png, coverage.png and (with a proposer) reliability.png in `out_dir`."""
+def write_plots(
+    metrics: dict[str, Any], out_dir: Path, per_case: Sequence[dict[str, Any]] = ()
+) -> list[Path]:
+    """anees_per_relation.png, coverage.png, (with a proposer) reliability.png and (given the per-case rows)
+    nll_minus_uniform.png in `out_dir`."""
     out_dir.mkdir(parents=True, exist_ok=True)
     written = [_anees_per_relation(metrics, out_dir / "anees_per_relation.png")]
     written.append(_coverage(metrics, out_dir / "coverage.png"))
     if metrics.get("referent", {}).get("overall", {}).get("reliability"):
         written.append(_reliability(metrics["referent"]["overall"], out_dir / "reliability.png"))
+    excess = _excess_over_uniform(evaluated_methods(metrics), per_case)
+    if any(excess.values()):
+        written.append(_excess_histogram(excess, out_dir / "nll_minus_uniform.png"))
     return written
+
+
+def _excess_over_uniform(
+    methods: Sequence[str], per_case: Sequence[dict[str, Any]]
+) -> dict[str, list[float]]:
+    """Per method, NLL - uniform_nll of every case it scored with the target inside the map's box."""
+    return {
+        m: [
+            row[m]["nll"] - row["uniform_nll"]
+            for row in per_case
+            if row.get("uniform_nll") is not None and "nll" in row.get(m, {})
+        ]
+        for m in methods
+    }
+
+
+def _excess_histogram(excess: dict[str, list[float]], path: Path) -> Path:
+    """Histogram of NLL - uniform_nll per case and method; left of 0 the utterance helped."""
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    values = np.concatenate([v for v in excess.values() if v])
+    edges = np.histogram_bin_edges(values, bins=min(60, max(10, len(values) // 10))).tolist()
+    fig = Figure(figsize=(6.0, 4.0), layout="constrained")
+    ax = fig.add_subplot()
+    for m, v in excess.items():
+        if v:
+            better = float(np.mean(np.asarray(v) < 0.0))
+            ax.hist(v, bins=edges, histtype="step", linewidth=1.5, label=f"{m} ({better:.0%} below 0)")
+    ax.axvline(0.0, color="black", linestyle="--", linewidth=1, label="no language")
+    ax.set_xlabel("NLL - NLL of the uniform over the map's box (nats)")
+    ax.set_ylabel("cases")
+    ax.set_title("Against no language (left of 0: the utterance helped)")
+    ax.legend(fontsize="small")
+    fig.savefig(path, dpi=120)
+    return path
 
 
 def _anees_per_relation(metrics: dict[str, Any], path: Path) -> Path:
