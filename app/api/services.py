@@ -68,7 +68,7 @@ def build_proposer(settings: Settings) -> HypothesisProposer:
     from app.grounding.builtin import BuiltinProposer
     from app.lsm.text_encoder import default_text_encoder
 
-    return BuiltinProposer.load(default_text_encoder(), max_hypotheses=settings.max_hypotheses)
+    return BuiltinProposer.load(default_text_encoder())
 
 
 def build_sensors(settings: Settings, metrics: Metrics) -> Sensors:

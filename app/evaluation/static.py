@@ -91,7 +91,7 @@ from app.grounding.hypotheses import Hypothesis, Proposal
 from app.grounding.interfaces import Grounder, HypothesisProposer
 from app.grounding.mixture import GaussianMixture, map_box
 from app.grounding.relations import Relation
-from app.grounding.sensor import LanguageSensor, broad_prior
+from app.grounding.sensor import LanguageSensor
 from app.scene_graph.model import SceneGraph
 
 log = logging.getLogger("vlmap.eval")
@@ -535,14 +535,14 @@ def _score_case(
         if matched is not None:
             nees_value = float(nees(mixture.means[matched], mixture.covariances[matched], target)[0])
     else:
-        if hypotheses:
+        if proposal is not None:  # the proposer's reading, served as the service serves it
+            grounding = sensor.ground_proposal(case.scene_graph, case.utterance, proposal)
+        elif hypotheses:
             grounding = sensor.ground(case.scene_graph, case.utterance, hypotheses=hypotheses)
-            mixture, grounded, densities = grounding.mixture, grounding.hypotheses, grounding.densities
-        elif proposal is not None:  # no anchor matched: the sensor's broad prior
-            mixture, grounded, densities = broad_prior(case.scene_graph, proposal.parse), (), ()
         else:
             msg = "no hypotheses to ground"
             raise ValueError(msg)
+        mixture, grounded, densities = grounding.mixture, grounding.hypotheses, grounding.densities
         heaviest = max(range(len(grounded)), key=lambda k: grounded[k].weight) if grounded else None
         if given_truth:
             matched = 0

@@ -106,7 +106,7 @@ class LexicalProposer:
                 relation=parse.relation,
                 weight=weight,
                 region_id=group[0].region_id,
-                text=describe(parse, group),
+                text=describe(parse.target, parse.relation, group),
             )
             for group in groups
         )
@@ -127,8 +127,11 @@ class LexicalProposer:
         return list(unique.values())
 
 
-def describe(parse: UtteranceParse, anchors: tuple[SceneObject, ...]) -> str:
-    """ "the backpack on table 7" style text for one hypothesis."""
+def describe(target: str, relation: Relation, anchors: tuple[SceneObject, ...], region: str = "") -> str:
+    """ "the backpack on table 7" style text for one hypothesis ("the backpack in the kitchen" for a region
+    hypothesis, "... in the map" without a region name)."""
+    said = target or "target"
+    if not anchors:
+        return f"the {said} in the {region or 'map'}"
     names = " and ".join(f"{o.label} {o.id}" for o in anchors)
-    target = parse.target or "target"
-    return f"the {target} {parse.relation.value} {names}"
+    return f"the {said} {relation.value} {names}"

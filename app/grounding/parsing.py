@@ -1,48 +1,72 @@
 """Utterance parsing: "I left my backpack on the table in the kitchen" -> target, relation, anchors, region.
 
-Rule-based on purpose: it runs in microseconds, offline, and every rule is visible here. The steps:
+Rule-based on purpose: it runs in well under a millisecond, offline, and every rule is visible here. People
+write referring expressions in many sentences ("this is a brown chair. it is at the end of the table close
+to the painting."), so the parse reads the whole utterance as noun phrases (mentions) and the spatial
+phrases between them, and says how each mention constrains the target:
 
-1. a region mention ("in the kitchen", "in the upstairs bedroom", "upstairs") is cut out first, so that its
-   "in" is not read as the relation;
-2. lead-ins ("I think I put", "can you get", "there is") are stripped from the front;
-3. the first relation phrase (by position, longest on ties) splits the rest into the target phrase before it
-   and the anchor phrase(s) after it. Relation phrases come from `RELATION_PHRASES`, the one relation table;
-   spatial phrases that name no relation we model ("behind", "in front of", "at") read as "near" with
-   `relation_known=False` and an empty `relation_phrase`, so that a grounder can widen its prior;
-4. fronted sentences ("on the shelf there is a book", "check between A and B for the mug") take the target
-   from the clause after the anchor; modifiers of the relation ("just above", "farthest away from",
-   "near to", "stored in") are absorbed;
-5. the anchor phrase keeps its attribute words ("white table"), which are also listed in `attributes`;
-   "between A and B" gives two anchor phrases, "on the table or the desk" two alternatives.
+1. region mentions ("in the kitchen", "in the upstairs bedroom", "upstairs") are cut out first, so that
+   their "in" is not read as a relation; the utterance is split into sentences;
+2. mentions are the longest runs of words that name an object (`app.vocabulary.object_nouns`, and the
+   map's own labels when the caller passes them), with the attribute words in front of them ("small white
+   table"); relation phrases come from `RELATION_PHRASES` (the one relation table) and `EXTRA_PHRASES`
+   (how Sr3D and people say closest, farthest and between); spatial phrases that name no relation we model
+   ("behind", "in front of", "at the end of") read as "near" with `relation_known=False`;
+3. the target is the first mention no relation phrase governs ("the chair closest to the door": the
+   chair; "on the shelf there is a book": the book), or a pronoun ("it's under the sofa"); a later
+   ungoverned mention of the target's class is the target named again ("... the black monitor sits on");
+4. each relation phrase relates its *subject*, the nearest mention before it in the same clause (the
+   target when there is none, or after a comma), to the mentions that follow it ("A and B", "A or B"). A
+   relation of the target makes its relata *anchors*; a relation of another mention makes them *qualifiers*
+   of that mention ("the cup is on the table next to the tv": the tv says which table);
+5. "not", "n't", "never", "without" before a relation phrase negate it; left/right/front/behind words (or a
+   viewpoint: "when facing the door") mark the relations of that clause view-dependent; "between A and B"
+   pairs two anchors, "in the middle of A and B" too;
+6. a mention after the target that no relation phrase governs ("the ball is halfway up the stairs") is an
+   anchor with an unknown relation (near); a relation phrase followed by no known object name keeps the
+   words it governs as an unknown mention ("next to the spaceship").
+
+The primary reading (`target`, `relation`, `anchor_phrases`: the first relation of the target and its
+relata) is what the first parser gave; `mentions` hold everything.
 """
 
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
-from app.grounding.hypotheses import UtteranceParse
+from app.grounding.hypotheses import Mention, UtteranceParse
 from app.grounding.relations import RELATION_PHRASES, Relation
+from app.vocabulary import lemmas, normalise, object_nouns, same_class
 
-#: Spatial phrases for relations the sensor does not model: read as "near" with a wider prior.
+__all__ = [
+    "ATTRIBUTE_WORDS",
+    "COLOR_WORDS",
+    "EXTRA_PHRASES",
+    "MATERIAL_WORDS",
+    "ROOM_WORDS",
+    "SHAPE_WORDS",
+    "SIZE_WORDS",
+    "VAGUE_PHRASES",
+    "VIEW_PHRASES",
+    "clean_target",
+    "normalise",
+    "parse_utterance",
+    "split_attributes",
+    "strip_determiners",
+    "target_noun",
+]
+
+#: Spatial phrases for relations the sensor does not model, view-independent: read as "near", widened.
 VAGUE_PHRASES: tuple[str, ...] = (
-    "in front of",
-    "in back of",
-    "at the back of",
     "at the end of",
     "at the foot of",
     "at the side of",
     "on the side of",
     "to the side of",
-    "to the left of",
-    "to the right of",
-    "on the left of",
-    "on the right of",
-    "on the left side of",
-    "on the right side of",
-    "left of",
-    "right of",
-    "behind",
+    "on the opposite side of",
+    "on the other side of",
     "across from",
     "opposite to",
     "opposite of",
@@ -57,11 +81,70 @@ VAGUE_PHRASES: tuple[str, ...] = (
     "among",
     "amid",
     "with",
+    "has",
+    "have",
+    "having",
+    "contains",
     "towards",
     "toward",
     "at",
+    "surrounded by",
+    "in the corner of",
+    "in the middle of",
+    "in the center of",
+    "in the centre of",
 )
-
+#: Spatial phrases that need the speaker's viewpoint: read as "near", view-dependent.
+VIEW_PHRASES: tuple[str, ...] = (
+    "in front of",
+    "in back of",
+    "at the back of",
+    "to the left of",
+    "to the right of",
+    "on the left of",
+    "on the right of",
+    "on the left side of",
+    "on the right side of",
+    "to the left side of",
+    "to the right side of",
+    "left of",
+    "right of",
+    "behind",
+    "north of",
+    "south of",
+    "east of",
+    "west of",
+)
+#: More ways to say relations we model (Sr3D's templates and people's words), beside RELATION_PHRASES.
+EXTRA_PHRASES: dict[Relation, tuple[str, ...]] = {
+    Relation.CLOSEST: ("closer to", "nearer to", "the closest to", "the nearest to"),
+    Relation.FARTHEST: (
+        "far from",
+        "far away from",
+        "farther from",
+        "further from",
+        "farthest away from",
+        "furthest away from",
+        "farther away from",
+        "further away from",
+        "most far from",
+        "away from",
+    ),
+    Relation.ON: (
+        "on the top of",
+        "sitting on top of",
+        "placed on",
+        "hanging on",
+        "mounted on",
+        "leaning on",
+    ),
+    Relation.IN: ("inside of", "stored in", "placed in"),
+    Relation.BELOW: ("right under", "directly under", "directly below", "just below", "just under"),
+    Relation.ABOVE: ("directly above", "right above", "just above", "up above", "hanging above"),
+    Relation.NEAR: ("right next to", "near to", "close by", "next to each other with"),
+}
+# "in the middle of A and B" is between; of one thing ("of the room") it is a vague place.
+_MIDDLE_PHRASES = frozenset({"in the middle of", "in the center of", "in the centre of"})
 #: Room words read as a region even when the scene graph names no such region ("in the garage").
 ROOM_WORDS: tuple[str, ...] = (
     "kitchen",
@@ -107,7 +190,7 @@ def _words(text: str) -> frozenset[str]:
     return frozenset(text.split())
 
 
-#: Adjectives a speaker puts on an anchor ("the small table"); matched against SceneObject.attributes.
+#: Adjectives a speaker puts on an object ("the small table"); matched against SceneObject.attributes.
 COLOR_WORDS = _words(
     "white black grey gray silver red blue navy green yellow orange brown beige tan pink purple "
     "violet gold golden cream teal turquoise maroon"
@@ -116,6 +199,29 @@ SIZE_WORDS = _words("small little tiny big large huge tall short long wide narro
 MATERIAL_WORDS = _words("wooden wood metal metallic glass plastic leather fabric marble steel")
 SHAPE_WORDS = _words("round square rectangular circular oval")
 ATTRIBUTE_WORDS = COLOR_WORDS | SIZE_WORDS | MATERIAL_WORDS | SHAPE_WORDS
+# Comparative and superlative forms read as their size word ("the biggest table" ranks by size).
+_DEGREES = {
+    f"{stem}{end}": base
+    for base, stems in {
+        "small": ("smaller", "smallest"),
+        "big": ("bigger", "biggest"),
+        "large": ("larger", "largest"),
+        "tall": ("taller", "tallest"),
+        "short": ("shorter", "shortest"),
+        "long": ("longer", "longest"),
+        "wide": ("wider", "widest"),
+        "narrow": ("narrower", "narrowest"),
+        "low": ("lower", "lowest"),
+        "high": ("higher", "highest"),
+        "little": ("littler", "littlest"),
+        "tiny": ("tinier", "tiniest"),
+        "huge": ("huger", "hugest"),
+    }.items()
+    for stem in stems
+    for end in ("",)
+}
+# Words that may sit between a determiner and an attribute or a noun without ending the noun phrase.
+_FILLERS = _words("light dark bright pale very rather quite kind sort of colored coloured shaped looking")
 
 _LEAD_INS = re.compile(
     r"^(?:"
@@ -126,13 +232,17 @@ _LEAD_INS = re.compile(
     r"|(?:can|could|would|will) you (?:please )?(?:find|get|fetch|bring me|grab|look for|check)\b"
     r"|you(?:'ll| will| can| should) (?:find|see)\b"
     r"|(?:go (?:and )?|please )?"
-    r"(?:find|fetch|get|grab|bring me|look for|search for|locate|check|go to|look)\b"
+    r"(?:find|fetch|get|grab|bring me|look for|search for|locate|check|go to|look|select|choose|pick)\b"
     r"|there(?:'s| is| are)\b|it(?:'s| is)\b|they(?:'re| are)\b|where(?:'s| is| are)\b"
     r")\s*"
 )
 _DETERMINERS = re.compile(
     r"^(?:(?:the|a|an|my|our|your|his|her|their|some|this|that|these|those|both|one of the|one of|"
     r"the other|other|another)\s+)+"
+)
+_DETERMINER_WORDS = _words(
+    "the a an my our your his her their some this that these those both other another one of its two "
+    "three four several all any each"
 )
 # Words that end a target phrase but are not part of it: copulas, relative pronouns, relation modifiers.
 _TARGET_TAIL = _words(
@@ -141,10 +251,27 @@ _TARGET_TAIL = _words(
     "standing hanging usually probably still now always just right up directly slightly also there"
 )
 _COPULAS = _words("is are was were it's they're")
+_PRONOUNS = _words("it this that they them one ones itself")
+_NEGATORS = _words("not n't never no nowhere nothing without neither nor isn't aren't wasn't weren't don't")
+_VIEW_WORDS = _words("left right front behind facing leftmost rightmost")
+_COORDINATORS = _words("and or")
+# What may stand between a relation phrase and its relatum, or between two relata: "next to the other two".
+_NOUN_PHRASE_GAP = (
+    _DETERMINER_WORDS
+    | ATTRIBUTE_WORDS
+    | _FILLERS
+    | _COORDINATORS
+    | frozenset(_DEGREES)
+    | _words("either neither the other same")
+)
+# Names in the vocabulary that in an utterance name a place or nothing in particular, not an object.
+_NOT_MENTIONS = frozenset(
+    {"corner", "object", "thing", "item", "can", "hanging", "recycling", *(lemmas(w) for w in ROOM_WORDS)}
+)
+# Words after a relation phrase that name a side or a part of the view, not an object ("on the far left").
+_PLACE_WORDS = _words("far left right side top bottom end middle center centre corner front back edge way")
 # Leading words of the anchor text that belong to the relation ("farthest away from", "near to").
 _ANCHOR_HEAD = re.compile(r"^(?:(?:away|from|to|of)\s+)+")
-# A clause after the anchor: the fronted target ("... there is a book", "... for the mug") or a remark.
-_FRONTED_TARGET = re.compile(r"\s+(?:there(?:'s| is| are)|for)\s+(?P<target>.+)$")
 _CLAUSE_END = re.compile(
     r"\s+(?:that|which|where|who|so|because|but|i think|i guess|i believe|please|right now|now|"
     r"somewhere|for me|again|too|as well|if you can|thanks|thank you)\b.*$"
@@ -154,76 +281,20 @@ _UNKNOWN_RELATION = re.compile(
     r"(?<=\s)(?:is|are|was|were|sits|lies|stands|hangs|rests)\s+"
     r"(?P<rel>[a-z']+(?:\s+[a-z']+){0,2}?)(?=\s+(?:the|a|an|my|our|your|his|her|their|this|that)\s)"
 )
-_WORD = re.compile(r"[a-z0-9']+")
-
-
-def normalise(text: str) -> str:
-    """Lower case, plain spaces, no punctuation except apostrophes."""
-    return " ".join(_WORD.findall(text.lower().replace("’", "'")))
+_SENTENCE = re.compile(r"[.!?;:\n]+")
+_COMMA = re.compile(r"\s*,\s*")
+#: Share of words that must be English (in the vocabulary or common function words) to parse at all.
+MIN_ENGLISH_SHARE = 0.5
+_FUNCTION_WORDS = _words(
+    "the a an is are was were be it its this that there here of on in at to by with from for and or not "
+    "my your i you we they he she near next under over above below between left right front back behind "
+    "side top bottom middle corner closest farthest furthest one two three find choose select pick look "
+    "where which who what has have can could would should will please thanks wall room floor door window"
+)
 
 
 def strip_determiners(phrase: str) -> str:
     return _DETERMINERS.sub("", phrase.strip()).strip()
-
-
-_PHRASE_TO_RELATION = {p: r for r, ps in RELATION_PHRASES.items() for p in ps}
-
-
-@lru_cache(maxsize=1)
-def _relation_pattern() -> re.Pattern[str]:
-    """All relation and vague phrases as one alternation, longest first (so "in front of" beats "in")."""
-    phrases = sorted({*_PHRASE_TO_RELATION, *VAGUE_PHRASES}, key=lambda p: (-len(p), p))
-    alternation = "|".join(re.escape(p) for p in phrases)
-    return re.compile(rf"\b(?P<rel>{alternation})\b")
-
-
-_BOUNDARY_WORDS = sorted(
-    {p.split()[0] for p in (*_PHRASE_TO_RELATION, *VAGUE_PHRASES)}
-    | {"is", "are", "was", "were", "should", "must", "might", "may", "there", "and", "or", "for", "please"}
-    | {"now", "i", "somewhere", "that", "which", "where", "but", "so", "right", "just", "sits", "lies"}
-)
-
-
-@lru_cache(maxsize=256)
-def _region_pattern(region_names: tuple[str, ...]) -> re.Pattern[str]:
-    """ "in the (upstairs) kitchen" at a phrase boundary (not "in the kitchen cabinet"), or "upstairs"."""
-    names = sorted({n for n in (*region_names, *ROOM_WORDS) if n}, key=lambda n: (-len(n), n))
-    alternation = "|".join(re.escape(n) for n in names)
-    boundary = rf"(?=$|\s+(?:{'|'.join(re.escape(w) for w in _BOUNDARY_WORDS)})\b)"
-    return re.compile(
-        rf"(?:^|\s)(?:(?:in|inside|at|from|of|on)\s+(?:the\s+|my\s+|our\s+|this\s+|that\s+)?"
-        rf"(?P<region>(?:(?:{_REGION_QUALIFIERS})\s+)*(?:{alternation}))"
-        rf"|(?P<storey>upstairs|downstairs)){boundary}"
-    )
-
-
-def _take_region(text: str, region_names: tuple[str, ...]) -> tuple[str, str | None]:
-    """The text without its first region mention, and the mention ("upstairs bedroom"), if any."""
-    match = _region_pattern(tuple(sorted(set(region_names)))).search(text)
-    if match is None:
-        return text, None
-    region = match.group("region") or match.group("storey")
-    rest = (text[: match.start()] + " " + text[match.end() :]).strip()
-    return " ".join(rest.split()), region
-
-
-def _strip_lead_ins(text: str) -> str:
-    while True:
-        shorter = _LEAD_INS.sub("", text, count=1).strip()
-        if shorter == text:
-            return text
-        text = shorter
-
-
-def clean_target(phrase: str) -> str:
-    """The target noun phrase: no determiners in front, no copula or modifiers behind."""
-    words = strip_determiners(phrase).split()
-    # Nothing after a copula is the target's name ("the cat is sleeping", "my wallet it's").
-    cut = next((i for i, w in enumerate(words) if w in _COPULAS), len(words))
-    words = words[:cut]
-    while words and words[-1] in _TARGET_TAIL:
-        words.pop()
-    return strip_determiners(" ".join(words))
 
 
 def split_attributes(phrase: str) -> tuple[tuple[str, ...], str]:
@@ -238,54 +309,453 @@ def split_attributes(phrase: str) -> tuple[tuple[str, ...], str]:
     return tuple(words[:count]), " ".join(words[count:])
 
 
-def _anchor_phrase(text: str) -> str:
-    """One anchor noun phrase: no determiners, cut before a nested relation ("table by the window")."""
-    phrase = strip_determiners(_ANCHOR_HEAD.sub("", text.strip()))
-    nested = _relation_pattern().search(phrase)
-    if nested is not None and nested.start() > 0:
-        phrase = phrase[: nested.start()].strip()
-    return strip_determiners(phrase)
+def clean_target(phrase: str) -> str:
+    """The target noun phrase: no determiners in front, no copula or modifiers behind."""
+    words = strip_determiners(phrase).split()
+    # Nothing after a copula is the target's name ("the cat is sleeping", "my wallet it's").
+    cut = next((i for i, w in enumerate(words) if w in _COPULAS), len(words))
+    words = words[:cut]
+    while words and words[-1] in _TARGET_TAIL:
+        words.pop()
+    return strip_determiners(" ".join(words))
 
 
-def parse_utterance(utterance: str, region_names: tuple[str, ...] = ()) -> UtteranceParse:
-    """Split an utterance into target phrase, relation and anchor phrase(s), region and anchor attributes.
+# --- the phrase tables, as token sequences ---
+
+
+@dataclass(frozen=True)
+class _Phrase:
+    relation: Relation
+    known: bool
+    view: bool
+    text: str
+
+
+@lru_cache(maxsize=1)
+def _phrase_table() -> dict[tuple[str, ...], _Phrase]:
+    table: dict[tuple[str, ...], _Phrase] = {}
+    for phrase in VAGUE_PHRASES:
+        table[tuple(phrase.split())] = _Phrase(Relation.NEAR, False, False, phrase)
+    for phrase in VIEW_PHRASES:
+        table[tuple(phrase.split())] = _Phrase(Relation.NEAR, False, True, phrase)
+    for relation, phrases in (*RELATION_PHRASES.items(), *EXTRA_PHRASES.items()):
+        for phrase in phrases:
+            table[tuple(phrase.split())] = _Phrase(relation, True, False, phrase)
+    return table
+
+
+@lru_cache(maxsize=1)
+def _longest_phrase() -> int:
+    return max(len(k) for k in _phrase_table())
+
+
+def _region_pattern(region_names: tuple[str, ...]) -> re.Pattern[str]:
+    return _region_regex(tuple(sorted(set(region_names))))
+
+
+_BOUNDARY_WORDS = sorted(
+    {w.split()[0] for w in (*VAGUE_PHRASES, *VIEW_PHRASES)}
+    | {p.split()[0] for ps in (*RELATION_PHRASES.values(), *EXTRA_PHRASES.values()) for p in ps}
+    | {"is", "are", "was", "were", "should", "must", "might", "may", "there", "and", "or", "for", "please"}
+    | {"now", "i", "somewhere", "that", "which", "where", "but", "so", "right", "just", "sits", "lies"}
+)
+
+
+@lru_cache(maxsize=256)
+def _region_regex(region_names: tuple[str, ...]) -> re.Pattern[str]:
+    """ "in the (upstairs) kitchen" at a phrase boundary (not "in the kitchen cabinet"), or "upstairs"."""
+    names = sorted({n for n in (*region_names, *ROOM_WORDS) if n}, key=lambda n: (-len(n), n))
+    alternation = "|".join(re.escape(n) for n in names)
+    boundary = rf"(?=$|\s+(?:{'|'.join(re.escape(w) for w in _BOUNDARY_WORDS)})\b)"
+    return re.compile(
+        rf"(?:^|\s)(?:(?:in|inside|at|from|of|on)\s+(?:the\s+|my\s+|our\s+|this\s+|that\s+)?"
+        rf"(?P<region>(?:(?:{_REGION_QUALIFIERS})\s+)*(?:{alternation}))"
+        rf"|(?P<storey>upstairs|downstairs)){boundary}"
+    )
+
+
+def _take_regions(text: str, region_names: tuple[str, ...]) -> tuple[str, list[str]]:
+    """The text without its region mentions, and the mentions ("upstairs bedroom"), in order."""
+    found: list[str] = []
+    pattern = _region_pattern(region_names)
+    while (match := pattern.search(text)) is not None:
+        found.append(match.group("region") or match.group("storey"))
+        text = " ".join((text[: match.start()] + " " + text[match.end() :]).split())
+    return text, found
+
+
+def _strip_lead_ins(text: str) -> str:
+    while True:
+        shorter = _LEAD_INS.sub("", text, count=1).strip()
+        if shorter == text:
+            return text
+        text = shorter
+
+
+# --- mentions and relations in one sentence ---
+
+
+@dataclass
+class _Item:
+    """A mention or a relation phrase found in a clause, by token position."""
+
+    kind: str  # "mention" or "relation"
+    start: int
+    end: int
+    phrase: str = ""  # a mention's attribute words and noun, as said
+    noun: str = ""  # a mention's object name, lemmatised
+    attributes: tuple[str, ...] = ()
+    relation: _Phrase | None = None
+    negated: bool = False
+
+
+def _mention_spans(
+    tokens: list[str], lexicon: frozenset[str], blocked: set[int]
+) -> list[tuple[int, int, str]]:
+    """Longest runs of up to 4 tokens whose lemmas name an object, outside relation phrases."""
+    spans: list[tuple[int, int, str]] = []
+    i = 0
+    lemma = [lemmas(t) for t in tokens]
+    while i < len(tokens):
+        if i in blocked or tokens[i] in _DETERMINER_WORDS:
+            i += 1
+            continue
+        for width in (4, 3, 2, 1):
+            j = i + width
+            if j > len(tokens) or any(k in blocked for k in range(i, j)):
+                continue
+            name = " ".join(lemma[i:j])
+            adjective = width == 1 and tokens[i] in _FILLERS and j < len(tokens) and tokens[j] in COLOR_WORDS
+            if name in lexicon and name not in _NOT_MENTIONS and not adjective:
+                spans.append((i, j, name))
+                i = j
+                break
+        else:
+            i += 1
+    return spans
+
+
+def _attributes_before(tokens: list[str], start: int) -> tuple[str, ...]:
+    """The attribute words right before a mention (fillers such as "dark" or "very" skipped)."""
+    found: list[str] = []
+    k = start - 1
+    while k >= 0 and (tokens[k] in ATTRIBUTE_WORDS or tokens[k] in _DEGREES or tokens[k] in _FILLERS):
+        word = _DEGREES.get(tokens[k], tokens[k])
+        if word in ATTRIBUTE_WORDS:
+            found.append(word)
+        k -= 1
+    return tuple(reversed(found))
+
+
+def _modifiers_before(tokens: list[str], start: int, blocked: set[int], floor: int) -> int:
+    """Where a mention's words start: up to two unknown modifiers before its name ("cat toy") belong to it,
+    function words, attributes, verbs and relation words do not."""
+    k = start
+    while (
+        k > floor
+        and start - k < 2
+        and (k - 1) not in blocked
+        and tokens[k - 1] not in _DETERMINER_WORDS
+        and tokens[k - 1] not in _FUNCTION_WORDS
+        and tokens[k - 1] not in _TARGET_TAIL
+        and tokens[k - 1] not in ATTRIBUTE_WORDS
+        and tokens[k - 1] not in _DEGREES
+        and tokens[k - 1] not in _FILLERS
+        and not tokens[k - 1].endswith(("ing", "ed", "'s", "n't"))
+    ):
+        k -= 1
+    return k
+
+
+def _clause_items(tokens: list[str], lexicon: frozenset[str]) -> list[_Item]:
+    """Relation phrases (longest first, left to right) and the mentions between them, in order."""
+    table, longest = _phrase_table(), _longest_phrase()
+    relations: list[_Item] = []
+    i = 0
+    while i < len(tokens):
+        for width in range(min(longest, len(tokens) - i), 0, -1):
+            phrase = table.get(tuple(tokens[i : i + width]))
+            if phrase is not None:
+                negated = any(t in _NEGATORS or t.endswith("n't") for t in tokens[max(0, i - 3) : i])
+                relations.append(_Item("relation", i, i + width, relation=phrase, negated=negated))
+                i += width
+                break
+        else:
+            i += 1
+    blocked = {k for r in relations for k in range(r.start, r.end)}
+    merged: list[_Item] = []
+    for a, b, name in _mention_spans(tokens, lexicon, blocked):
+        if merged and merged[-1].end == a:
+            # Adjacent names are one compound ("bay window table"): its noun is the last one.
+            last = merged[-1]
+            merged[-1] = replace(last, end=b, phrase=f"{last.phrase} {' '.join(tokens[a:b])}", noun=name)
+            continue
+        a = _modifiers_before(tokens, a, blocked, merged[-1].end if merged else 0)
+        attributes = _attributes_before(tokens, a)
+        said = " ".join((*attributes, *tokens[a:b]))
+        merged.append(_Item("mention", a, b, phrase=said, noun=name, attributes=attributes))
+    return sorted([*relations, *merged], key=lambda item: item.start)
+
+
+def _unknown_relatum(tokens: list[str], start: int, stop: int) -> str:
+    """The words a relation phrase governs when none names an object: up to the next clause word."""
+    words: list[str] = []
+    for token in tokens[start:stop]:
+        if token in _COPULAS or token in ("that", "which", "who", "where", "and", "or", "but", "so"):
+            break
+        words.append(token)
+    phrase = clean_target(" ".join(words[:4]))
+    if not phrase or phrase.split()[0] in _PRONOUNS or any(w in _PLACE_WORDS for w in phrase.split()):
+        return ""
+    return phrase
+
+
+@dataclass
+class _Sentence:
+    tokens: list[str]
+    items: list[_Item]
+    view: bool
+
+
+def _sentences(text: str) -> list[list[list[str]]]:
+    """Sentences of the original text, each as clauses (split at commas), each a list of words."""
+    out = []
+    for sentence in _SENTENCE.split(text.lower().replace("’", "'")):
+        clauses = [normalise(c).split() for c in _COMMA.split(sentence)]
+        clauses = [c for c in clauses if c]
+        if clauses:
+            out.append(clauses)
+    return out
+
+
+# --- the whole utterance ---
+
+
+def parse_utterance(
+    utterance: str, region_names: tuple[str, ...] = (), object_names: tuple[str, ...] = ()
+) -> UtteranceParse:
+    """Read an utterance: its target, every mention and how it constrains the target, the regions named.
 
     `region_names` (lower case) are the scene's region names; room words ("kitchen", "garage") are read as
-    regions too. With no relation word at all, the whole utterance names the target and the relation is
-    "near" with no anchor.
+    regions too. `object_names` (lemmatised labels of the map) join the vocabulary of object names. With no
+    relation word at all, the whole utterance names the target and the relation is "near" with no anchor.
     """
-    text, region_phrase = _take_region(normalise(utterance), region_names)
-    body = _strip_lead_ins(text)
-    match = _relation_pattern().search(body) or _UNKNOWN_RELATION.search(body)
-    if match is None:
-        return UtteranceParse(
-            target=clean_target(body), relation=Relation.NEAR, anchor_phrases=(), region_phrase=region_phrase
-        )
-    said = match.group("rel")
-    relation = _PHRASE_TO_RELATION.get(said, Relation.NEAR)
-    known = said in _PHRASE_TO_RELATION
-    target = clean_target(body[: match.start()])
-    rest = body[match.end() :].strip()
-    fronted = _FRONTED_TARGET.search(rest)
-    if fronted is not None:
-        if not target:
-            target = clean_target(fronted.group("target"))
-        rest = rest[: fronted.start()]
-    rest = _CLAUSE_END.sub("", rest)
+    lexicon = object_nouns() | frozenset(object_names)
+    regions: list[str] = []
+    mentions: list[Mention] = []
+    target_index: int | None = None
+    view_any = False
+    english_words = total_words = 0
+    for number, clauses in enumerate(_sentences(utterance)):
+        sentence_view = any(w in _VIEW_WORDS for c in clauses for w in c)
+        for clause_number, words in enumerate(clauses):
+            text, found = _take_regions(" ".join(words), region_names)
+            regions += found
+            body = _strip_lead_ins(text) if clause_number == 0 else text
+            tokens = body.split()
+            total_words += len(words)
+            english_words += sum(1 for w in words if w in _FUNCTION_WORDS or lemmas(w) in lexicon)
+            items = _clause_items(tokens, lexicon)
+            view_any |= sentence_view
+            target_index = _read_clause(
+                tokens, items, mentions, target_index, number, sentence_view, fresh_clause=clause_number > 0
+            )
+    english = total_words == 0 or english_words / total_words >= MIN_ENGLISH_SHARE
+    return _primary(utterance, region_names, mentions, target_index, regions, view_any, english)
 
-    separator = r"\s+and\s+" if relation is Relation.BETWEEN else r"\s+or\s+"
-    parts = re.split(separator, rest, maxsplit=1)
-    anchors = tuple(p for p in (_anchor_phrase(part) for part in parts) if p)
-    attributes = tuple(word for a in anchors for word in split_attributes(a)[0])
+
+def _read_clause(
+    tokens: list[str],
+    items: list[_Item],
+    mentions: list[Mention],
+    target_index: int | None,
+    sentence: int,
+    view: bool,
+    fresh_clause: bool,
+) -> int | None:
+    """Add the clause's mentions to `mentions` (step 3-6 of the module docstring); returns the target's
+    index (set by the first ungoverned mention when no target is known yet)."""
+    subject: int | None = None  # the index of the latest mention of this clause
+    governed: set[int] = set()
+    position = 0
+    while position < len(items):
+        item = items[position]
+        if item.kind == "mention" and position not in governed:
+            index = len(mentions)
+            if target_index is not None and same_class(item.noun, mentions[target_index].noun):
+                subject = target_index  # the target named again ("... the black monitor sits on ...")
+                position += 1
+                continue
+            if target_index is None:
+                mentions.append(Mention(item.phrase, item.noun, item.attributes, "target", sentence=sentence))
+                target_index = index
+            else:
+                # A noun after the target with no relation phrase: an anchor of an unknown relation.
+                mentions.append(
+                    Mention(
+                        item.phrase,
+                        item.noun,
+                        item.attributes,
+                        "anchor",
+                        Relation.NEAR,
+                        "",
+                        False,
+                        view_dependent=view,
+                        sentence=sentence,
+                    )
+                )
+            subject = index
+            position += 1
+            continue
+        if item.kind != "relation" or item.relation is None:
+            position += 1
+            continue
+        phrase = item.relation
+        # The relata: the mentions after the phrase joined by "and"/"or" (only determiners, attributes and
+        # coordinators between them), up to the next relation phrase.
+        relata: list[tuple[int, bool]] = []  # (item index, joined by "or")
+        cursor = position + 1
+        last_end = item.end
+        while cursor < len(items) and items[cursor].kind == "mention":
+            gap = tokens[last_end : items[cursor].start]
+            if relata and not any(w in _COORDINATORS for w in gap):
+                break
+            if any(w in _COPULAS for w in gap) or not all(w in _NOUN_PHRASE_GAP or w.isdigit() for w in gap):
+                break
+            relata.append((cursor, "or" in gap))
+            last_end = items[cursor].end
+            cursor += 1
+        head = subject if subject is not None else target_index
+        role = "anchor" if head is None or head == target_index else "qualifier"
+        relation, known = phrase.relation, phrase.known
+        if phrase.text in _MIDDLE_PHRASES:  # "in the middle of A and B", or of the plural "the desks"
+            plural = (
+                len(relata) == 1
+                and lemmas(tokens[items[relata[0][0]].end - 1]) != tokens[items[relata[0][0]].end - 1]
+            )
+            relation, known = (
+                (Relation.BETWEEN, True) if len(relata) == 2 or plural else (Relation.NEAR, False)
+            )
+        first = len(mentions)
+        if not relata:
+            unknown = _unknown_relatum(
+                tokens, item.end, items[cursor].start if cursor < len(items) else len(tokens)
+            )
+            if unknown:
+                mentions.append(
+                    Mention(
+                        unknown,
+                        split_attributes(unknown)[1],
+                        split_attributes(unknown)[0],
+                        role,
+                        relation,
+                        phrase.text if known else "",
+                        known,
+                        head if role == "qualifier" else None,
+                        negated=item.negated,
+                        view_dependent=view or phrase.view,
+                        sentence=sentence,
+                        known=False,
+                    )
+                )
+        for k, (at, disjunct) in enumerate(relata):
+            relatum = items[at]
+            partner = None
+            if relation is Relation.BETWEEN and len(relata) >= 2 and k < 2:
+                partner = first + (1 - k)
+            mentions.append(
+                Mention(
+                    relatum.phrase,
+                    relatum.noun,
+                    relatum.attributes,
+                    role,
+                    relation,
+                    phrase.text if known else "",
+                    known,
+                    head if role == "qualifier" else None,
+                    partner,
+                    item.negated,
+                    view or phrase.view,
+                    disjunct,
+                    sentence,
+                )
+            )
+            governed.add(at)
+        if relata:
+            subject = first + len(relata) - 1
+        position = cursor
+    return target_index
+
+
+def _primary(
+    utterance: str,
+    region_names: tuple[str, ...],
+    mentions: list[Mention],
+    target_index: int | None,
+    regions: list[str],
+    view: bool,
+    english: bool,
+) -> UtteranceParse:
+    """The parse with its primary reading: the target's first relation and that relation's relata; where
+    the mentions find no target name, the words before the first relation phrase (the first parser's rule)."""
+    target = mentions[target_index] if target_index is not None else None
+    anchors = [m for m in mentions if m.role == "anchor"]
+    first = anchors[0] if anchors else None
+    group: list[Mention] = []
+    if first is not None:
+        for m in anchors[anchors.index(first) :]:
+            if (
+                m.relation is not first.relation
+                or m.sentence != first.sentence
+                or (group and not (m.disjunct or m.partner is not None or first.relation is Relation.BETWEEN))
+            ):
+                break
+            group.append(m)
+            if len(group) == 2:
+                break
+    target_text = target.phrase if target is not None else _fallback_target(utterance, region_names)
+    if target is None and target_text:  # a name the vocabulary lacks ("the cat is in the box")
+        attributes, noun = split_attributes(target_text)
+        said = Mention(target_text, lemmas(noun), attributes, "target", known=False)
+        mentions = [said, *(_shift(m, 1) for m in mentions)]
     return UtteranceParse(
-        target=target,
-        relation=relation,
-        anchor_phrases=anchors,
-        relation_phrase=said if known else "",
-        region_phrase=region_phrase,
-        attributes=attributes,
-        relation_known=known,
+        target=target_text,
+        relation=first.relation if first is not None and first.relation is not None else Relation.NEAR,
+        anchor_phrases=tuple(m.phrase for m in group),
+        relation_phrase=first.relation_phrase if first is not None else "",
+        region_phrase=regions[0] if regions else None,
+        attributes=tuple(a for m in group for a in m.attributes),
+        relation_known=first.relation_known if first is not None else True,
+        mentions=tuple(mentions),
+        region_phrases=tuple(regions),
+        target_attributes=target.attributes if target is not None else split_attributes(target_text)[0],
+        sentences=max(1, len(_SENTENCE.split(utterance.strip(" .!?;\n")))),
+        view_dependent=view,
+        english=english,
     )
+
+
+def _shift(mention: Mention, by: int) -> Mention:
+    return replace(
+        mention,
+        head=None if mention.head is None else mention.head + by,
+        partner=None if mention.partner is None else mention.partner + by,
+    )
+
+
+def _fallback_target(utterance: str, region_names: tuple[str, ...]) -> str:
+    """The first parser's target: the words before the first relation phrase, cleaned."""
+    text = normalise(utterance)
+    text, _ = _take_regions(text, region_names)
+    body = _strip_lead_ins(text)
+    tokens = body.split()
+    table, longest = _phrase_table(), _longest_phrase()
+    for i in range(len(tokens)):
+        for width in range(min(longest, len(tokens) - i), 0, -1):
+            if tuple(tokens[i : i + width]) in table:
+                return clean_target(" ".join(tokens[:i]))
+    match = _UNKNOWN_RELATION.search(body)
+    return clean_target(body[: match.start()] if match else body)
 
 
 def target_noun(utterance: str, region_names: tuple[str, ...] = ()) -> str:

@@ -1,27 +1,47 @@
-"""The language sensor: P(x | L, map) = sum_h P(x | h, map) P(h | L, map) as one mixture.
+"""The language sensor: P(x | L, map) = sum_h P(x | h, map) P(h | L, map), served as one mixture.
 
-A `HypothesisProposer` gives the weighted hypotheses, a `Grounder` one density per hypothesis (a small
-Gaussian mixture). When no anchor matches, the sensor says so (`grounded = False`) and returns a broad prior
-over the mentioned region(s) or the whole map instead of inventing an anchor.
+A `HypothesisProposer` gives the weighted hypotheses and the weight beta of the broad "I may have
+misunderstood" term, a `Grounder` one density per hypothesis (a small Gaussian mixture). The sensor serves
+
+    p(x) = (1 - beta) sum_h w_h p_h(x) + beta_min U(x; map) + (beta - beta_min) B(x),
+
+with beta at least beta_min = `MIN_BACKGROUND_WEIGHT`, U the uniform density over the map's box (`map_box`),
+and B the broad density over what the utterance allows: the mentioned region(s), else the map with the areas
+a negation rules out carved away ("not on the table"), else the map. Since p(x) >= beta_min / vol(map box)
+everywhere in the map, no input makes it worse than the uniform over the map by more than
+log(1 / beta_min) = 3.9 nats.
+
+Only the `max_grounded` heaviest hypotheses go through the grounder; the others keep their mass, merged per
+region into one broad Gaussian each (moment-matched over rough per-anchor Gaussians), so no reading a long
+list of look-alike anchors holds is dropped. A hypothesis with a spread c > 1 (a vague or view-dependent
+relation) has every covariance of its density multiplied by c. Caller-given hypotheses skip the proposer and
+keep beta at beta_min.
+
+When no hypothesis is left (nothing to read, a map without objects) the mixture is the broad prior alone.
 """
 
 from __future__ import annotations
 
 import time
+from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from app.errors import InvalidInput
-from app.grounding.hypotheses import Hypothesis, Proposal, UtteranceParse
+from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis, Proposal, UtteranceParse
 from app.grounding.interfaces import Grounder, HypothesisProposer
 from app.grounding.lexical import regions_named
-from app.grounding.mixture import Gaussian, GaussianMixture
+from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, map_box
 from app.grounding.parsing import parse_utterance
 from app.scene_graph.model import SceneGraph
 
 StageObserver = Callable[[str, float], None]
+#: Hypotheses grounded one by one (the rest are merged per region).
+DEFAULT_MAX_GROUNDED = 8
+# The rough per-anchor Gaussian of a merged hypothesis: sigma = half extent + this (metres) per axis.
+_MERGED_MARGIN = 0.5
 
 
 @dataclass(frozen=True)
@@ -29,10 +49,11 @@ class Grounding:
     """What the sensor concluded from one utterance."""
 
     proposal: Proposal
-    hypotheses: tuple[Hypothesis, ...]  # weights sum to 1; empty when not grounded
+    hypotheses: tuple[Hypothesis, ...]  # the served readings: weights sum to 1; merged ones summarise many
     mixture: GaussianMixture
     timings_ms: dict[str, float] = field(default_factory=dict)
-    densities: tuple[GaussianMixture, ...] = ()  # P(x | h, map) of each hypothesis, in order
+    densities: tuple[GaussianMixture, ...] = ()  # P(x | h, map) of each served hypothesis, in order
+    background: float = MIN_BACKGROUND_WEIGHT  # beta, the broad term's weight in `mixture`
 
     @property
     def grounded(self) -> bool:
@@ -43,34 +64,61 @@ class LanguageSensor:
     """Proposer then grounder; every stage timed (and reported to `observer`, e.g. Prometheus)."""
 
     def __init__(
-        self, proposer: HypothesisProposer, grounder: Grounder, observer: StageObserver | None = None
+        self,
+        proposer: HypothesisProposer,
+        grounder: Grounder,
+        observer: StageObserver | None = None,
+        max_grounded: int = DEFAULT_MAX_GROUNDED,
     ):
+        if max_grounded < 1:
+            msg = f"max_grounded must be at least 1, got {max_grounded}"
+            raise ValueError(msg)
         self.proposer = proposer
         self.grounder = grounder
         self.observer = observer
+        self.max_grounded = max_grounded
 
     def ground(
         self, scene_graph: SceneGraph, utterance: str, hypotheses: Sequence[Hypothesis] | None = None
     ) -> Grounding:
-        """Hypotheses from the proposer (or the caller's, validated) and their mixture."""
+        """Hypotheses from the proposer (or the caller's, validated), their densities, the served mixture."""
         timings: dict[str, float] = {}
         if hypotheses is None:
             with self._stage("proposer", timings):
                 proposal = self.proposer.propose(scene_graph, utterance)
         else:
             proposal = self._caller_proposal(scene_graph, utterance, hypotheses)
-        if not proposal.hypotheses:
-            mixture = broad_prior(scene_graph, proposal.parse)
-            return Grounding(proposal, (), mixture, timings)
+        return self.ground_proposal(scene_graph, utterance, proposal, timings)
+
+    def ground_proposal(
+        self,
+        scene_graph: SceneGraph,
+        utterance: str,
+        proposal: Proposal,
+        timings: dict[str, float] | None = None,
+    ) -> Grounding:
+        """The served mixture of a proposal made already (the evaluation shares one among grounders)."""
+        timings = {} if timings is None else timings
+        beta = max(MIN_BACKGROUND_WEIGHT, min(1.0, proposal.background))
+        if not proposal.hypotheses or beta >= 1.0:
+            return Grounding(proposal, (), broad_prior(scene_graph, proposal.parse), timings, background=1.0)
+        ranked = sorted(proposal.hypotheses, key=lambda h: -h.weight)
+        grounded, rest = ranked[: self.max_grounded], ranked[self.max_grounded :]
         with self._stage("grounder", timings):
-            densities = tuple(self.grounder.ground(scene_graph, utterance, list(proposal.hypotheses)))
-        weights = np.array([h.weight for h in proposal.hypotheses], dtype=np.float64)
+            densities = [
+                widened(d, h.spread)
+                for d, h in zip(self.grounder.ground(scene_graph, utterance, grounded), grounded, strict=True)
+            ]
+        served = list(grounded)
+        for merged, density in merged_tail(scene_graph, rest):
+            served.append(merged)
+            densities.append(density)
+        weights = np.array([h.weight for h in served], dtype=np.float64)
+        weights /= weights.sum()
         mixture = GaussianMixture.combine(weights, densities)
-        normalised = tuple(
-            replace(h, weight=float(w))
-            for h, w in zip(proposal.hypotheses, weights / weights.sum(), strict=True)
-        )
-        return Grounding(proposal, normalised, mixture, timings, densities)
+        served_hypotheses = tuple(replace(h, weight=float(w)) for h, w in zip(served, weights, strict=True))
+        mixture = with_broad_term(mixture, beta, scene_graph, proposal)
+        return Grounding(proposal, served_hypotheses, mixture, timings, tuple(densities), beta)
 
     def _stage(self, name: str, timings: dict[str, float]) -> _StageTimer:
         return _StageTimer(name, timings, self.observer)
@@ -113,21 +161,122 @@ class _StageTimer:
             self.observer(self.name, seconds)
 
 
-def broad_prior(scene_graph: SceneGraph, parse: UtteranceParse) -> GaussianMixture:
-    """Moment-matched Gaussians of a uniform distribution over the mentioned regions, else the whole map.
+def widened(density: GaussianMixture, spread: float) -> GaussianMixture:
+    """The density with every covariance times `spread` (>= 1: a vague reading is less certain)."""
+    if spread == 1.0:
+        return density
+    return replace(density, covariances=density.covariances * spread)
 
-    A uniform density over a box of widths w has covariance diag(w^2 / 12); regions get equal weight.
-    """
+
+def merged_tail(
+    scene_graph: SceneGraph, hypotheses: Sequence[Hypothesis]
+) -> list[tuple[Hypothesis, GaussianMixture]]:
+    """One summarising hypothesis and one broad Gaussian per region for the hypotheses not grounded one by
+    one: each hypothesis stands for a rough Gaussian at its anchors' centre (sigma = half extent + 0.5 m
+    per axis; the whole map's box for a region hypothesis), and the region's Gaussian is their
+    weight-averaged moment match, its weight their sum."""
+    by_region: dict[str | None, list[Hypothesis]] = defaultdict(list)
+    for h in hypotheses:
+        by_region[h.region_id].append(h)
+    out = []
+    box = map_box(scene_graph)
+    for region_id, group in by_region.items():
+        weights = np.array([h.weight for h in group])
+        means, covs = [], []
+        for h in group:
+            if h.anchor_ids:
+                anchors = [scene_graph.object(i) for i in h.anchor_ids]
+                low = np.min([a.min_corner for a in anchors], axis=0)
+                high = np.max([a.max_corner for a in anchors], axis=0)
+                means.append(0.5 * (low + high))
+                covs.append(np.diag((0.5 * (high - low) + _MERGED_MARGIN) ** 2))
+            else:
+                means.append(box.center)
+                covs.append(box.covariance)
+        rough = GaussianMixture.from_components(
+            weights, [Gaussian(m, c) for m, c in zip(means, covs, strict=True)]
+        )
+        density = GaussianMixture.of(Gaussian(rough.mean(), rough.covariance()))
+        anchor_ids = tuple(dict.fromkeys(a for h in group for a in h.anchor_ids))
+        relation = max(
+            {h.relation for h in group}, key=lambda r: sum(h.weight for h in group if h.relation is r)
+        )
+        text = f"{len(group)} more readings" + (f" in region {region_id}" if region_id else "")
+        out.append((Hypothesis(anchor_ids, relation, float(weights.sum()), region_id, text), density))
+    return out
+
+
+def with_broad_term(
+    mixture: GaussianMixture, beta: float, scene_graph: SceneGraph, proposal: Proposal
+) -> GaussianMixture:
+    """(1 - beta) mixture + beta_min U(map) + (beta - beta_min) B (see the module docstring)."""
+    boxes, weights = broad_boxes(scene_graph, proposal.parse, proposal.avoid)
+    floor = MIN_BACKGROUND_WEIGHT
+    box = map_box(scene_graph)
+    keep = 1.0 - beta
+    extra = beta - floor
+    return GaussianMixture(
+        mixture.weights * keep,
+        mixture.means,
+        mixture.covariances,
+        np.concatenate([mixture.box_weights * keep, [floor], extra * weights]),
+        np.concatenate([mixture.box_lows, box.low[None], np.stack([b.low for b in boxes])]),
+        np.concatenate([mixture.box_highs, box.high[None], np.stack([b.high for b in boxes])]),
+    )
+
+
+def broad_boxes(
+    scene_graph: SceneGraph, parse: UtteranceParse, avoid: Sequence[UniformBox] = ()
+) -> tuple[list[UniformBox], np.ndarray]:
+    """The broad density B as uniform boxes with weights summing to one: the mentioned regions (equal
+    shares), else the map's box minus the `avoid` boxes (shares by volume, so B is uniform on what is
+    left), else the map's box."""
     region_ids = regions_named(scene_graph, parse.region_phrase)
-    boxes: list[tuple[np.ndarray, np.ndarray]] = []
     if region_ids:
-        for region in scene_graph.regions:
-            if region.id in region_ids:
-                boxes.append(
-                    (np.asarray(region.center, dtype=np.float64), np.asarray(region.size, dtype=np.float64))
-                )
-    if not boxes:
-        low, high = scene_graph.bounds()
-        boxes.append((0.5 * (low + high), np.maximum(high - low, 0.1)))
-    gaussians = [Gaussian(center, np.diag(size**2 / 12.0)) for center, size in boxes]
-    return GaussianMixture.from_components(np.ones(len(gaussians)), gaussians)
+        boxes = [
+            UniformBox.around(
+                np.asarray(r.center) - 0.5 * np.asarray(r.size),
+                np.asarray(r.center) + 0.5 * np.asarray(r.size),
+            )
+            for r in scene_graph.regions
+            if r.id in region_ids
+        ]
+        return boxes, np.full(len(boxes), 1.0 / len(boxes))
+    pieces = [map_box(scene_graph)]
+    for hole in avoid:
+        pieces = [part for piece in pieces for part in subtract(piece, hole)]
+    if not pieces:  # the negation covers the whole map: nothing is left to prefer
+        pieces = [map_box(scene_graph)]
+    volumes = np.array([p.volume for p in pieces])
+    return pieces, volumes / volumes.sum()
+
+
+def subtract(box: UniformBox, hole: UniformBox) -> list[UniformBox]:
+    """box minus hole as at most six disjoint boxes (slabs below and above the hole in z, then in y, x)."""
+    low, high = np.maximum(box.low, hole.low), np.minimum(box.high, hole.high)
+    if np.any(high <= low):
+        return [box]
+    out = []
+    lo, hi = box.low.copy(), box.high.copy()
+    for axis in (2, 1, 0):
+        if lo[axis] < low[axis]:
+            part_hi = hi.copy()
+            part_hi[axis] = low[axis]
+            out.append(UniformBox(lo.copy(), part_hi))
+        if high[axis] < hi[axis]:
+            part_lo = lo.copy()
+            part_lo[axis] = high[axis]
+            out.append(UniformBox(part_lo, hi.copy()))
+        lo[axis], hi[axis] = low[axis], high[axis]
+    return [b for b in out if np.all(b.high - b.low > 1e-9)]
+
+
+def broad_prior(scene_graph: SceneGraph, parse: UtteranceParse) -> GaussianMixture:
+    """The mixture when nothing can be grounded: U over the mentioned regions (equal weights), else the map,
+    always with beta_min U(map) (so the bound of the module docstring holds here too)."""
+    boxes, weights = broad_boxes(scene_graph, parse)
+    box = map_box(scene_graph)
+    floor = MIN_BACKGROUND_WEIGHT
+    return GaussianMixture.from_components(
+        [], [], boxes=[box, *boxes], box_weights=np.concatenate([[floor], (1.0 - floor) * weights])
+    )
