@@ -45,7 +45,16 @@ class Settings(BaseSettings):
     max_objects: int = Field(
         default=2000, ge=1, description="Objects allowed in one scene graph (422 above)."
     )
-    max_hypotheses: int = Field(default=5, ge=1, le=5, description="Hypotheses kept per utterance.")
+    max_hypotheses: int = Field(
+        default=5, ge=1, le=5, description="Readings the LLM and lexical proposers keep per utterance."
+    )
+    max_grounded_hypotheses: int = Field(
+        default=8,
+        ge=1,
+        le=64,
+        description="Hypotheses the grounder places one by one per utterance; the others keep their mass, "
+        "merged per region into one broad Gaussian each.",
+    )
     max_query_points: int = Field(default=10_000, ge=0, description="query_points allowed per /v1/ground.")
     max_utterance_chars: int = Field(default=1000, ge=1)
 

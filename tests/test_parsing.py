@@ -147,3 +147,127 @@ def test_every_generator_phrase_is_read_as_its_relation() -> None:
             assert (parse.relation, parse.anchor_phrases[0], parse.target) == (relation, "table", "mug"), (
                 phrase
             )
+
+
+# --- the whole utterance: mentions and how each constrains the target -------------------------------------
+
+
+def _mentions(parse):
+    return [(m.role, m.noun, m.relation, m.head) for m in parse.mentions]
+
+
+def test_a_qualifier_of_the_anchor_says_which_table() -> None:
+    parse = parse_utterance("the cup is on the table next to the tv")
+    assert _mentions(parse) == [
+        ("target", "cup", None, None),
+        ("anchor", "table", Relation.ON, None),
+        ("qualifier", "tv", Relation.NEAR, 1),
+    ]
+    assert parse.anchor_phrases == ("table",)
+
+
+def test_a_multi_sentence_description_finds_its_relation_clause() -> None:
+    parse = parse_utterance("this is a brown chair. it is at the end of the table close to the painting.")
+    assert parse.target == "brown chair" and parse.target_attributes == ("brown",)
+    assert parse.sentences == 2
+    table = next(m for m in parse.mentions if m.noun == "table")
+    assert (table.role, table.relation, table.relation_known, table.sentence) == (
+        "anchor",
+        Relation.NEAR,
+        False,
+        1,
+    )
+    painting = next(m for m in parse.mentions if m.noun == "painting")
+    assert painting.role == "qualifier" and parse.mentions[painting.head].noun == "table"
+
+
+def test_the_target_named_again_in_a_later_sentence_is_the_target() -> None:
+    parse = parse_utterance("it is a black computer monitor. the black computer monitor sits on the desk.")
+    assert [(m.role, m.noun) for m in parse.mentions] == [("target", "computer monitor"), ("anchor", "desk")]
+    assert parse.relation is Relation.ON
+
+
+@pytest.mark.parametrize(
+    ("utterance", "relation"),
+    [
+        ("choose the chair that is closest to the door", Relation.CLOSEST),
+        ("the table that is closer to the bench", Relation.CLOSEST),
+        ("find the cabinet that is far away from the washing machine", Relation.FARTHEST),
+        ("the chair that is far from the cabinets", Relation.FARTHEST),
+        ("the box that is in the middle of the desk and the trash can", Relation.BETWEEN),
+        ("select the table that is in the center of the armchair and the kitchen counter", Relation.BETWEEN),
+        ("choose the box that is on top of the desk", Relation.ON),
+        ("select the sink that is underneath the cabinet", Relation.BELOW),
+    ],
+)
+def test_sr3d_statements_read_as_their_relation(utterance: str, relation: Relation) -> None:
+    parse = parse_utterance(utterance)
+    assert parse.relation is relation and parse.relation_known
+    assert len(parse.anchor_phrases) == relation.n_anchors
+
+
+def test_a_disjunction_names_two_alternative_anchors() -> None:
+    parse = parse_utterance("my keys are on the bed or the couch")
+    bed, couch = parse.anchors
+    assert (bed.noun, couch.noun) == ("bed", "couch")
+    assert bed.relation is couch.relation is Relation.ON
+    assert couch.disjunct and not bed.disjunct
+
+
+@pytest.mark.parametrize(
+    "utterance",
+    ["my keys are not on the table", "the keys aren't on the table", "my keys are never on the table"],
+)
+def test_negation_marks_the_anchor(utterance: str) -> None:
+    (table,) = parse_utterance(utterance).anchors
+    assert table.noun == "table" and table.negated
+
+
+def test_a_qualifier_can_be_negated() -> None:
+    parse = parse_utterance("the books on the highest shelf but not on top of the cabinet")
+    shelf = next(m for m in parse.mentions if m.noun == "shelf")
+    assert shelf.attributes == ("high",) and not shelf.negated
+    cabinet = next(m for m in parse.mentions if m.noun == "cabinet")
+    assert cabinet.negated
+
+
+@pytest.mark.parametrize(
+    "utterance",
+    [
+        "the box to the left of the door",
+        "the chair behind the desk",
+        "facing the bed, choose the nightstand on the left",
+        "the lamp in front of the window",
+    ],
+)
+def test_view_dependent_words_are_marked(utterance: str) -> None:
+    parse = parse_utterance(utterance)
+    assert parse.view_dependent
+    assert any(m.view_dependent for m in parse.anchors)
+
+
+def test_a_view_independent_utterance_is_not_view_dependent() -> None:
+    parse = parse_utterance("the box next to the door")
+    assert not parse.view_dependent and not any(m.view_dependent for m in parse.mentions)
+
+
+def test_an_unknown_object_stays_an_unknown_mention() -> None:
+    (spaceship,) = parse_utterance("the keys are next to the spaceship").anchors
+    assert (spaceship.phrase, spaceship.known, spaceship.relation) == ("spaceship", False, Relation.NEAR)
+
+
+def test_map_labels_join_the_vocabulary() -> None:
+    assert not parse_utterance("the cup is next to the zorblax").anchors[0].known
+    parse = parse_utterance("the cup is next to the zorblax", object_names=("zorblax",))
+    assert parse.anchors[0].known
+
+
+@pytest.mark.parametrize(
+    "utterance", ["la taza está en la mesa", "die Tasse steht auf dem Tisch", "xq zv ptk"]
+)
+def test_text_that_is_not_english_says_so(utterance: str) -> None:
+    assert not parse_utterance(utterance).english
+
+
+def test_english_reads_as_english() -> None:
+    assert parse_utterance("the backpack is in the kitchen on the table").english

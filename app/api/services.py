@@ -24,7 +24,7 @@ from app.grounding.geometric import FixedGrounder, GeometricGrounder
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.interfaces import Grounder, HypothesisProposer
 from app.grounding.lexical import LexicalProposer
-from app.grounding.sensor import Grounding, LanguageSensor, StageObserver
+from app.grounding.sensor import DEFAULT_MAX_GROUNDED, Grounding, LanguageSensor, StageObserver
 from app.scene_graph.model import SceneGraph
 from app.settings import Settings
 from app.stores import open_store
@@ -43,6 +43,7 @@ class Sensors:
     default: str  # grounder
     default_proposer: str = "builtin"
     observer: StageObserver | None = None
+    max_grounded: int = DEFAULT_MAX_GROUNDED
 
     def get(self, grounder: str | None = None, proposer: str | None = None) -> LanguageSensor:
         """The language sensor made of these (loaded) parts."""
@@ -50,6 +51,7 @@ class Sensors:
             _pick(self.proposers, proposer or self.default_proposer, "options.proposer"),
             _pick(self.grounders, grounder or self.default, "options.grounder"),
             observer=self.observer,
+            max_grounded=self.max_grounded,
         )
 
 
@@ -105,7 +107,13 @@ def build_sensors(settings: Settings, metrics: Metrics) -> Sensors:
         )
         grounders["scaffolded-llm"] = ScaffoldedLLMGrounder(client)
         grounders["llm-e2e"] = LLMEndToEndGrounder(client)
-    return Sensors(grounders, proposers, settings.grounder, observer=metrics.observe_stage)
+    return Sensors(
+        grounders,
+        proposers,
+        settings.grounder,
+        observer=metrics.observe_stage,
+        max_grounded=settings.max_grounded_hypotheses,
+    )
 
 
 class SummaryCache:
