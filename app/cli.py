@@ -17,7 +17,7 @@ _COMMAND_MODULES = {
     "keys": "app.api.cli",
     "data": "app.data.cli",
     "train": "app.lsm.cli",
-    "fit-proposer": "app.grounding.referent_fit",
+    "fit-proposer": "app.training.referents",
     "sim": "app.sim.cli",
     "eval": "app.evaluation.cli",
 }
