@@ -1,16 +1,22 @@
-"""True spatial relations between a target box and the other objects of a scene.
+"""True spatial relations between a target box and the other objects of a scene: the one set of box
+predicates of the project.
 
 Everything works on axis-aligned boxes (metres, z up), as the training layouts provide them. A `Box` holds
 lower and upper corners of shape (..., 3); every predicate broadcasts, so one call tests a target against all
 anchors of a scene at once (`anchors.lo` of shape (N, 3) gives an (N,) mask) and the same call on two single
 boxes gives a 0-d boolean.
 
-The definitions follow the spirit of the VLA-3D statement generator (vertical relations from heights plus
-footprint overlap, "between" from the segment joining two anchors, closest/farthest among the instances of
-the target's class) with thresholds chosen for ScanNet's noisy instance boxes; each is written in the
-docstring of its predicate and every threshold is a named constant below.
+The project's own definitions ("vlmap") follow the spirit of the VLA-3D statement generator (vertical
+relations from heights plus footprint overlap, "between" from the segment joining two anchors,
+closest/farthest among the instances of the target's class) with thresholds chosen for ScanNet's noisy
+instance boxes; each is written in the docstring of its predicate and every threshold is a named constant
+below. Predicates that other datasets define differently take their thresholds as a rule object
+(`OnRule`, `VerticalRule`, `BeneathRule`, `InRule`) or keyword arguments whose defaults are ours;
+`app.data.conventions` fills them with Sr3D's and VLA-3D's values, and holds the predicates that only those
+conventions use (`hull_occupancy`, `axis_between`, `ranked_ordinal_relations`) here too, so that there is one
+set of box relations.
 
-Label policy (which objects may serve as anchors), decided here once:
+Label policy of the vlmap convention (which objects may serve as anchors), decided here once:
 
 * floor and ceiling are never anchors: everything is "near"/"above" the floor, and "on the floor" names no
   location beyond the room itself (the region does that);
@@ -22,24 +28,28 @@ Label policy (which objects may serve as anchors), decided here once:
 * parts of furniture (drawers, knobs, handles) anchor only "in" and "near": an object on a dresser is above
   its drawers, but nobody says so, and "between the drawer and the drawer" names no place;
 * generic labels ("object", "structure") are never anchors: they cannot be named in an utterance;
-* an anchor is never of the target's kind ("the chair near the chair", "the book under the books" are not
-  how people speak), except that the two anchors of "between" may share a label with each other.
+* an anchor is never of the target's class (`app.vocabulary.same_class`: "the chair near the chair", "the book
+  under the books" are not how people speak), except that the two anchors of "between" may share a label.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneObject
+from app.vocabulary import same_class
 
 # on: the target's bottom may lie this far above the anchor's top (boxes float a little in scans) ...
 ON_GAP_TOLERANCE = 0.10
-# ... or sink this far into the anchor's box: ScanNet boxes of things on desks start 5-20 cm below its top.
+# ... or sink this far into the anchor's box: ScanNet boxes of things on desks start 5-20 cm below its top ...
 ON_SINK_TOLERANCE = 0.25
+# ... but stay above this fraction of the anchor's height (a thin anchor's box is not sunk through).
+ON_MIN_BOTTOM_FRACTION = 0.5
 # on: the target's footprint centre may overhang the anchor's footprint by this much.
 ON_XY_MARGIN = 0.05
 # on, internal supports (seats, beds, shelves): the supported bottom is at least this high above the anchor's
@@ -70,6 +80,12 @@ BETWEEN_MAX_OFFSET = 0.5
 # in metres and as a fraction of the target's distance, or people could not tell the instances apart.
 ORDINAL_MIN_GAP = 0.3
 ORDINAL_MIN_RATIO = 0.1
+# Slack (metres) of comparisons whose threshold is zero, so that the float round-off of moved boxes cannot
+# decide a tie: AI2-THOR's boxes touch exactly (a plate resting on the bottom of its cabinet's box).
+ROUND_OFF = 1e-6
+# hull_occupancy: grid points per side of the target footprint on which the occupied area is measured
+# (400 cells: the measured fraction is within ~2.5% of the exact area fraction).
+HULL_GRID = 20
 
 
 def label_set(text: str) -> frozenset[str]:
@@ -78,9 +94,9 @@ def label_set(text: str) -> frozenset[str]:
 
 
 FLOOR_CEILING = label_set("floor, floors, ceiling, ceilings")
-WALL_LIKE = label_set(
-    "wall, walls, closet wall, closet walls, shower wall, shower walls, bathroom stall, partition, "
-    "divider, pillar, column, beam, pipe, pipes, stair rail, railing, rail, stairs"
+WALLS = label_set("wall, walls, closet wall, closet walls, shower wall, shower walls")
+WALL_LIKE = WALLS | label_set(
+    "bathroom stall, partition, divider, pillar, column, beam, pipe, pipes, stair rail, railing, rail, stairs"
 )
 OPENINGS = label_set(
     "door, doors, doorframe, door frame, doorway, window, windows, window frame, closet door, "
@@ -149,6 +165,10 @@ class Box:
         """The boxes selected by an index array or mask over the leading axis."""
         return Box(self.lo[index], self.hi[index])
 
+    def expand(self, axis: int) -> Box:
+        """The boxes with a new axis of length 1 at `axis` (to broadcast one set against another)."""
+        return Box(np.expand_dims(self.lo, axis), np.expand_dims(self.hi, axis))
+
 
 @dataclass(frozen=True)
 class Grounding:
@@ -158,13 +178,62 @@ class Grounding:
     anchor_ids: tuple[str, ...]
 
 
+@dataclass(frozen=True)
+class OnRule:
+    """Thresholds of `is_on` (the defaults are the vlmap convention's)."""
+
+    gap: float = ON_GAP_TOLERANCE
+    sink: float = ON_SINK_TOLERANCE
+    min_bottom_fraction: float = ON_MIN_BOTTOM_FRACTION
+    # Footprint test: the target's footprint centre inside the anchor's footprint grown by `xy_margin`, or,
+    # with `xy_margin` None, the covered share of the target's footprint |F_t ∩ F_a| / |F_t| >= `min_cover`.
+    xy_margin: float | None = ON_XY_MARGIN
+    min_cover: float = 0.0
+    # |F_t| / |F_a| < max_area_ratio (1: the anchor's footprint is the larger).
+    max_area_ratio: float = 1.0
+    # The target's top must rise above the anchor's top (it sits on the surface, not inside the box).
+    must_poke_out: bool = True
+    # Internal supports: the supported bottom at least this far above the anchor's base.
+    base_clearance: float = INTERNAL_SUPPORT_MIN_HEIGHT
+
+
+@dataclass(frozen=True)
+class VerticalRule:
+    """Thresholds of `is_above` and of the hanging case of `is_below`: the vertical gap g between the boxes
+    and the footprint intersection over the smaller footprint (IoM)."""
+
+    min_gap: float = VERTICAL_MIN_GAP
+    max_gap: float = VERTICAL_MAX_GAP
+    min_overlap: float = VERTICAL_MIN_OVERLAP
+
+
+@dataclass(frozen=True)
+class BeneathRule:
+    """Thresholds of the furniture-with-clearance case of `is_below`."""
+
+    top_clearance: float = UNDER_CLEARANCE
+    base_tolerance: float = UNDER_BASE_TOLERANCE
+    # Footprint test: the target's footprint centre inside the anchor's footprint, or, when set, a footprint
+    # IoM of at least this.
+    min_overlap: float | None = None
+
+
+@dataclass(frozen=True)
+class InRule:
+    """Thresholds of `is_in`."""
+
+    z_tolerance: float = IN_Z_TOLERANCE
+    # Smaller than the container on every side (else: smaller in volume).
+    every_side_smaller: bool = False
+
+
+ON_RULE = OnRule()
+VERTICAL_RULE = VerticalRule()
+BENEATH_RULE = BeneathRule()
+IN_RULE = InRule()
+
+
 # --- label policy -----------------------------------------------------------------------------------------
-
-
-def same_kind(a: str, b: str) -> bool:
-    """Whether two labels name the same kind of thing, up to case and a plural ending ("book", "books")."""
-    x, y = a.strip().lower(), b.strip().lower()
-    return x == y or x in (y + "s", y + "es") or y in (x + "s", x + "es")
 
 
 def _in_class(label: str, names: frozenset[str]) -> bool:
@@ -174,14 +243,24 @@ def _in_class(label: str, names: frozenset[str]) -> bool:
 
 
 def is_structure(label: str) -> bool:
-    """Floors, ceilings, walls, openings and generic labels: never a target."""
+    """Floors, ceilings, walls, openings and generic labels: never a small movable target."""
     return any(_in_class(label, names) for names in (FLOOR_CEILING, WALL_LIKE, OPENINGS, GENERIC))
+
+
+def is_room_shell(label: str) -> bool:
+    """Floors, ceilings, walls and generic labels: never a target of any size (doors and windows may be)."""
+    return any(_in_class(label, names) for names in (FLOOR_CEILING, WALLS, GENERIC))
+
+
+def is_wall(label: str) -> bool:
+    return _in_class(label, WALLS)
 
 
 def is_container(label: str) -> bool:
     return _in_class(label, CONTAINERS)
 
 
+@lru_cache(maxsize=1 << 14)
 def internal_support_reach(label: str) -> float:
     """Up to which fraction of its height an anchor may carry things inside its box: 0 for a plain top
     surface, SEAT_SURFACE_MAX_FRACTION for seats, 1 for shelves."""
@@ -192,10 +271,12 @@ def internal_support_reach(label: str) -> float:
     return 0.0
 
 
+@lru_cache(maxsize=1 << 14)
 def has_clearance_below(label: str) -> bool:
     return _in_class(label, CLEARANCE_BELOW)
 
 
+@lru_cache(maxsize=1 << 16)
 def anchor_allowed(relation: Relation, label: str) -> bool:
     """Whether an object with this label may anchor the relation (the policy in the module docstring)."""
     if _in_class(label, FLOOR_CEILING) or _in_class(label, GENERIC):
@@ -221,15 +302,39 @@ def footprint_contains(anchor: Box, point_xy: np.ndarray, margin: float = 0.0) -
     )
 
 
-def footprint_overlap(a: Box, b: Box) -> np.ndarray:
-    """Intersection over the smaller footprint, IoM = |F_a ∩ F_b| / min(|F_a|, |F_b|), in [0, 1]."""
+def footprint_intersection(a: Box, b: Box) -> np.ndarray:
+    """Area of the intersection of the two footprints, |F_a ∩ F_b|."""
     side = np.clip(
         np.minimum(a.hi[..., :2], b.hi[..., :2]) - np.maximum(a.lo[..., :2], b.lo[..., :2]), 0.0, None
     )
-    inter = side[..., 0] * side[..., 1]
-    area_a = np.prod(a.size[..., :2], axis=-1)
-    area_b = np.prod(b.size[..., :2], axis=-1)
-    return inter / np.maximum(np.minimum(area_a, area_b), 1e-9)
+    return side[..., 0] * side[..., 1]
+
+
+def footprint_area(a: Box) -> np.ndarray:
+    return np.prod(a.size[..., :2], axis=-1)
+
+
+def footprint_overlap(a: Box, b: Box) -> np.ndarray:
+    """Intersection over the smaller footprint, IoM = |F_a ∩ F_b| / min(|F_a|, |F_b|), in [0, 1]."""
+    smaller = np.minimum(footprint_area(a), footprint_area(b))
+    return footprint_intersection(a, b) / np.maximum(smaller, 1e-9)
+
+
+def footprint_iou(a: Box, b: Box) -> np.ndarray:
+    """Intersection over union of the two footprints."""
+    inter = footprint_intersection(a, b)
+    return inter / np.maximum(footprint_area(a) + footprint_area(b) - inter, 1e-9)
+
+
+def height_overlap(a: Box, b: Box) -> np.ndarray:
+    """Length of the intersection of the two boxes' height ranges (negative: the gap between them)."""
+    return np.minimum(a.hi[..., 2], b.hi[..., 2]) - np.maximum(a.lo[..., 2], b.lo[..., 2])
+
+
+def volume_overlap(a: Box, b: Box) -> np.ndarray:
+    """Volume of the intersection of the two boxes."""
+    side = np.clip(np.minimum(a.hi, b.hi) - np.maximum(a.lo, b.lo), 0.0, None)
+    return np.prod(side, axis=-1)
 
 
 def surface_distance(a: Box, b: Box) -> np.ndarray:
@@ -238,21 +343,43 @@ def surface_distance(a: Box, b: Box) -> np.ndarray:
     return np.linalg.norm(gap, axis=-1)
 
 
-def is_on(target: Box, anchor: Box, internal_reach: float | np.ndarray = 0.0) -> np.ndarray:
+def centre_distance(a: Box, b: Box, dims: int = 3) -> np.ndarray:
+    """Distance between the boxes' centres, over the first `dims` axes (2: in the floor plane)."""
+    return np.linalg.norm(a.center[..., :dims] - b.center[..., :dims], axis=-1)
+
+
+def top_in_upper_band(target: Box, anchor: Box, fraction: float) -> np.ndarray:
+    """Whether the target's top lies in the upper `fraction` of the anchor's height:
+    t_t > t_a - fraction h_a."""
+    return target.hi[..., 2] > anchor.hi[..., 2] - fraction * anchor.size[..., 2]
+
+
+def fits_inside(target: Box, anchor: Box) -> np.ndarray:
+    """Whether the target is smaller than the anchor along every axis."""
+    return np.all(target.size < anchor.size, axis=-1)
+
+
+def is_on(
+    target: Box, anchor: Box, internal_reach: float | np.ndarray = 0.0, rule: OnRule = ON_RULE
+) -> np.ndarray:
     """The anchor supports the target.
 
     Let b = target bottom, t_a = anchor top, z_a = anchor bottom, h_a = t_a - z_a, c = target footprint
-    centre. On a plain top surface (`internal_reach` = 0):
+    centre. On a plain top surface (`internal_reach` = 0), with the vlmap thresholds:
 
         on  <=>  c in footprint(anchor) grown by ON_XY_MARGIN
-             and |footprint(anchor)| > |footprint(target)|
-             and max(t_a - ON_SINK_TOLERANCE, z_a + h_a / 2) <= b <= t_a + ON_GAP_TOLERANCE
+             and |footprint(target)| < |footprint(anchor)|
+             and max(t_a - ON_SINK_TOLERANCE, z_a + ON_MIN_BOTTOM_FRACTION h_a) <= b <= t_a + ON_GAP_TOLERANCE
              and target top > t_a          (it sits on the surface, not inside the anchor's box)
 
     An anchor with support surfaces inside its box (`internal_reach` = r > 0: a seat under a backrest, the
     boards of a shelf) replaces the height conditions by
 
         z_a + INTERNAL_SUPPORT_MIN_HEIGHT <= b <= z_a + r h_a + ON_GAP_TOLERANCE.
+
+    `rule` replaces each threshold (`OnRule`): the footprint test may instead ask a covered share of the
+    target's footprint, the area condition a ratio |F_t| / |F_a| < max_area_ratio, and the poke-out
+    condition may be dropped.
     """
     bottom = target.lo[..., 2]
     base_a = anchor.lo[..., 2]
@@ -261,76 +388,97 @@ def is_on(target: Box, anchor: Box, internal_reach: float | np.ndarray = 0.0) ->
     internal = reach > 0
     lower = np.where(
         internal,
-        base_a + INTERNAL_SUPPORT_MIN_HEIGHT,
-        np.maximum(top_a - ON_SINK_TOLERANCE, anchor.center[..., 2]),
+        base_a + rule.base_clearance,
+        np.maximum(top_a - rule.sink, base_a + rule.min_bottom_fraction * (top_a - base_a)),
     )
-    upper = np.where(internal, base_a + reach * (top_a - base_a), top_a) + ON_GAP_TOLERANCE
+    upper = np.where(internal, base_a + reach * (top_a - base_a), top_a) + rule.gap
     height_ok = (bottom >= lower) & (bottom <= upper)
-    pokes_out = internal | (target.hi[..., 2] > top_a)
-    bigger = np.prod(anchor.size[..., :2], axis=-1) > np.prod(target.size[..., :2], axis=-1)
-    inside_xy = footprint_contains(anchor, target.center[..., :2], ON_XY_MARGIN)
-    return inside_xy & bigger & height_ok & pokes_out
+    pokes_out = internal | (target.hi[..., 2] > top_a) if rule.must_poke_out else True
+    area_ok = footprint_area(target) < rule.max_area_ratio * footprint_area(anchor)
+    if rule.xy_margin is not None:
+        inside_xy = footprint_contains(anchor, target.center[..., :2], rule.xy_margin)
+    else:
+        cover = footprint_intersection(target, anchor) / np.maximum(footprint_area(target), 1e-9)
+        inside_xy = cover >= rule.min_cover
+    return inside_xy & area_ok & height_ok & pokes_out
 
 
-def is_in(target: Box, anchor: Box) -> np.ndarray:
+def is_in(target: Box, anchor: Box, rule: InRule = IN_RULE) -> np.ndarray:
     """The anchor's box encloses the target (the anchor must be a container; see `anchor_allowed`):
 
     in  <=>  target centre inside the anchor's box
          and z_a - IN_Z_TOLERANCE <= target bottom,  target top <= t_a + IN_Z_TOLERANCE
-         and vol(target) < vol(anchor)
+         and vol(target) < vol(anchor)     (`rule.every_side_smaller`: smaller along every axis instead)
     """
     c = target.center
     centre_inside = np.all((c >= anchor.lo) & (c <= anchor.hi), axis=-1)
-    z_inside = (target.lo[..., 2] >= anchor.lo[..., 2] - IN_Z_TOLERANCE) & (
-        target.hi[..., 2] <= anchor.hi[..., 2] + IN_Z_TOLERANCE
+    z_inside = (target.lo[..., 2] >= anchor.lo[..., 2] - rule.z_tolerance) & (
+        target.hi[..., 2] <= anchor.hi[..., 2] + rule.z_tolerance
     )
-    smaller = np.prod(target.size, axis=-1) < np.prod(anchor.size, axis=-1)
+    if rule.every_side_smaller:
+        smaller = fits_inside(target, anchor)
+    else:
+        smaller = np.prod(target.size, axis=-1) < np.prod(anchor.size, axis=-1)
     return centre_inside & z_inside & smaller
 
 
-def is_above(target: Box, anchor: Box) -> np.ndarray:
+def _hangs(gap: np.ndarray, target: Box, anchor: Box, rule: VerticalRule) -> np.ndarray:
+    return (
+        (gap > rule.min_gap) & (gap <= rule.max_gap) & (footprint_overlap(target, anchor) >= rule.min_overlap)
+    )
+
+
+def is_above(target: Box, anchor: Box, rule: VerticalRule = VERTICAL_RULE) -> np.ndarray:
     """The target floats over the anchor without touching it:
 
     above  <=>  VERTICAL_MIN_GAP < target bottom - anchor top <= VERTICAL_MAX_GAP
            and  footprint IoM(target, anchor) >= VERTICAL_MIN_OVERLAP
     """
-    gap = target.lo[..., 2] - anchor.hi[..., 2]
-    return (
-        (gap > VERTICAL_MIN_GAP)
-        & (gap <= VERTICAL_MAX_GAP)
-        & (footprint_overlap(target, anchor) >= VERTICAL_MIN_OVERLAP)
-    )
+    return _hangs(target.lo[..., 2] - anchor.hi[..., 2], target, anchor, rule)
 
 
-def is_below(target: Box, anchor: Box, clearance: bool | np.ndarray = False) -> np.ndarray:
+def is_below(
+    target: Box,
+    anchor: Box,
+    clearance: bool | np.ndarray = False,
+    rule: VerticalRule | None = VERTICAL_RULE,
+    beneath: BeneathRule = BENEATH_RULE,
+) -> np.ndarray:
     """The target is under the anchor, in one of two ways:
 
     * hanging anchor (a shelf on the wall, a tv, a window): the target is wholly lower, with
       VERTICAL_MIN_GAP < anchor bottom - target top <= VERTICAL_MAX_GAP
-      and footprint IoM >= VERTICAL_MIN_OVERLAP;
+      and footprint IoM >= VERTICAL_MIN_OVERLAP (`rule`; None: no hanging case);
     * furniture with clearance (`clearance`: tables, desks, beds, ...): the target stands beneath its top,
-      target footprint centre inside the anchor's footprint, target top <= anchor top - UNDER_CLEARANCE and
-      target bottom <= anchor bottom + UNDER_BASE_TOLERANCE.
+      target footprint centre inside the anchor's footprint (or IoM >= `beneath.min_overlap`), target top
+      <= anchor top - UNDER_CLEARANCE and target bottom <= anchor bottom + UNDER_BASE_TOLERANCE.
     """
-    gap = anchor.lo[..., 2] - target.hi[..., 2]
-    hanging = (
-        (gap > VERTICAL_MIN_GAP)
-        & (gap <= VERTICAL_MAX_GAP)
-        & (footprint_overlap(target, anchor) >= VERTICAL_MIN_OVERLAP)
-    )
-    beneath = (
+    if rule is None:
+        hanging = np.zeros(np.broadcast_shapes(target.lo.shape, anchor.lo.shape)[:-1], dtype=bool)
+    else:
+        hanging = _hangs(anchor.lo[..., 2] - target.hi[..., 2], target, anchor, rule)
+    if beneath.min_overlap is None:
+        under_xy = footprint_contains(anchor, target.center[..., :2])
+    else:
+        under_xy = footprint_overlap(target, anchor) >= beneath.min_overlap
+    under = (
         np.asarray(clearance, dtype=bool)
-        & footprint_contains(anchor, target.center[..., :2])
-        & (target.hi[..., 2] <= anchor.hi[..., 2] - UNDER_CLEARANCE)
-        & (target.lo[..., 2] <= anchor.lo[..., 2] + UNDER_BASE_TOLERANCE)
+        & under_xy
+        & (target.hi[..., 2] <= anchor.hi[..., 2] - beneath.top_clearance)
+        & (target.lo[..., 2] <= anchor.lo[..., 2] + beneath.base_tolerance)
     )
-    return hanging | beneath
+    return hanging | under
 
 
-def is_near(target: Box, anchor: Box) -> np.ndarray:
-    """Surface-to-surface distance at most NEAR_MAX_DISTANCE. `true_groundings` further drops anchors the
-    target is on or in: "near" is the relation people use when it is neither."""
-    return surface_distance(target, anchor) <= NEAR_MAX_DISTANCE
+def is_near(
+    target: Box, anchor: Box, max_distance: float | np.ndarray = NEAR_MAX_DISTANCE, *, centres: bool = False
+) -> np.ndarray:
+    """Surface-to-surface distance at most NEAR_MAX_DISTANCE (`centres`: the distance between the boxes'
+    centres, below `max_distance`). `true_groundings` further drops anchors the target is on or in: "near"
+    is the relation people use when it is neither."""
+    if centres:
+        return centre_distance(target, anchor) < max_distance
+    return surface_distance(target, anchor) <= max_distance
 
 
 def _extent_along(box: Box, direction_xy: np.ndarray) -> np.ndarray:
@@ -367,10 +515,112 @@ def is_between(target: Box, first: Box, second: Box) -> np.ndarray:
     return separated & in_gap & (np.abs(d) <= BETWEEN_MAX_OFFSET) & z_ok
 
 
-def ordinal_relations(target: Box, siblings: Box, anchors: Box) -> tuple[np.ndarray, np.ndarray]:
+def hull_occupancy(target: Box, first: Box, second: Box, grid: int = HULL_GRID) -> np.ndarray:
+    """The share of the target's footprint inside the convex hull of the two anchors' footprints,
+    |F_t ∩ hull(F_1 ∪ F_2)| / |F_t|, measured on a grid x grid lattice of cell centres of F_t.
+
+    The hull of two convex sets is the union of the segments between them, so a point p lies in it iff some
+    lambda in [0, 1] puts it in the box lambda F_1 + (1 - lambda) F_2 (corners lambda lo_1 + (1 - lambda) lo_2
+    and lambda hi_1 + (1 - lambda) hi_2): per axis two linear inequalities in lambda, whose intervals must
+    meet.
+    """
+    steps = (np.arange(grid) + 0.5) / grid  # (G,)
+    gx, gy = np.meshgrid(steps, steps, indexing="ij")
+    frac = np.stack([gx.ravel(), gy.ravel()], axis=-1)  # (G*G, 2)
+    lo_t = target.lo[..., None, :2]
+    points = lo_t + frac * (target.hi[..., None, :2] - lo_t)  # (..., G*G, 2)
+    lo1, hi1 = first.lo[..., None, :2], first.hi[..., None, :2]
+    lo2, hi2 = second.lo[..., None, :2], second.hi[..., None, :2]
+    lower = np.zeros(np.broadcast_shapes(points.shape, lo1.shape, lo2.shape)[:-1])
+    upper = np.ones_like(lower)
+    # lo_2 + lambda (lo_1 - lo_2) <= p  and  hi_2 + lambda (hi_1 - hi_2) >= p, per axis.
+    for slope, rhs, sign in ((lo1 - lo2, points - lo2, 1.0), (hi1 - hi2, points - hi2, -1.0)):
+        a, b = sign * slope, sign * rhs  # a lambda <= b
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bound = b / a
+        upper = np.minimum(upper, np.where(a > 0, bound, np.inf).min(axis=-1))
+        lower = np.maximum(lower, np.where(a < 0, bound, -np.inf).max(axis=-1))
+        infeasible = np.any((a == 0) & (b < 0), axis=-1)
+        upper = np.where(infeasible, -np.inf, upper)
+    return np.mean(lower <= upper, axis=-1)
+
+
+def axis_between(
+    target: Box,
+    first: Box,
+    second: Box,
+    *,
+    max_overlap: float,
+    max_asymmetry: float,
+    max_gap: float,
+    min_cross_overlap: float,
+) -> np.ndarray:
+    """The target lies between two anchors along the axis joining their centres (in the floor plane).
+
+    With u the unit xy vector from the first anchor's centre to the second's and v ⟂ u, project every box on
+    u (interval [l, h] of length w) and s_i its centre's position. With o_2 = (h_t - l_2) / min(w_t, w_2) and
+    o_1 = (h_1 - l_t) / min(w_t, w_1) (how far the target's interval runs into each anchor's, negative: the
+    gap between them in units of the smaller length):
+
+        between  <=>  s_1 < s_t < s_2
+                 and  o_1 < max_overlap,  o_2 < max_overlap,  |o_1 - o_2| < max_asymmetry
+                 and  -o_1 < max_gap,  -o_2 < max_gap
+                 and  IoM(cross-section of the target, of each anchor) > min_cross_overlap
+                      (cross-sections: the boxes projected on the (v, z) plane)
+    """
+    delta = second.center[..., :2] - first.center[..., :2]
+    u = delta / np.maximum(np.linalg.norm(delta, axis=-1), 1e-9)[..., None]
+    v = np.stack([-u[..., 1], u[..., 0]], axis=-1)
+
+    def interval(box: Box, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        mid = np.sum(box.center[..., :2] * direction, axis=-1)
+        half = _extent_along(box, direction)
+        return mid - half, mid + half
+
+    (l1, h1), (lt, ht), (l2, h2) = (interval(b, u) for b in (first, target, second))
+    s1, st, s2 = 0.5 * (l1 + h1), 0.5 * (lt + ht), 0.5 * (l2 + h2)
+    wt = ht - lt
+    o2 = (ht - l2) / np.maximum(np.minimum(wt, h2 - l2), 1e-9)
+    o1 = (h1 - lt) / np.maximum(np.minimum(wt, h1 - l1), 1e-9)
+    along = (
+        (s1 < st)
+        & (st < s2)
+        & (o1 < max_overlap)
+        & (o2 < max_overlap)
+        & (np.abs(o1 - o2) < max_asymmetry)
+        & (-o1 < max_gap)
+        & (-o2 < max_gap)
+    )
+
+    def cross_iom(anchor: Box) -> np.ndarray:
+        (la, ha), (lb, hb) = interval(target, v), interval(anchor, v)
+        width = np.clip(np.minimum(ha, hb) - np.maximum(la, lb), 0.0, None)
+        height = np.clip(height_overlap(target, anchor), 0.0, None)
+        area_t = (ha - la) * target.size[..., 2]
+        area_a = (hb - lb) * anchor.size[..., 2]
+        return width * height / np.maximum(np.minimum(area_t, area_a), 1e-9)
+
+    return along & (cross_iom(first) > min_cross_overlap) & (cross_iom(second) > min_cross_overlap)
+
+
+def _distances(anchors: Box, objects: Box, surface: bool) -> np.ndarray:
+    """(N, M) distances between N anchors and M objects: surface-to-surface, or between centres."""
+    a, o = anchors.expand(1), objects.expand(0)
+    return surface_distance(a, o) if surface else centre_distance(a, o)
+
+
+def ordinal_relations(
+    target: Box,
+    siblings: Box,
+    anchors: Box,
+    *,
+    min_gap: float = ORDINAL_MIN_GAP,
+    min_ratio: float = ORDINAL_MIN_RATIO,
+    surface: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
     """Whether the target is the closest / farthest instance of its class from each anchor (VLA-3D semantics:
-    "the chair closest to the door"). With d_t the centre distance from the anchor to the target and d_s those
-    to its same-class siblings (at least one is needed):
+    "the chair closest to the door"). With d_t the centre distance (`surface`: surface-to-surface distance)
+    from the anchor to the target and d_s those to its same-class siblings (at least one is needed):
 
         closest   <=>  min d_s - d_t >= max(ORDINAL_MIN_GAP, ORDINAL_MIN_RATIO * d_t)
         farthest  <=>  d_t - max d_s >= max(ORDINAL_MIN_GAP, ORDINAL_MIN_RATIO * d_t)
@@ -380,16 +630,54 @@ def ordinal_relations(target: Box, siblings: Box, anchors: Box) -> tuple[np.ndar
     n = anchors.lo.shape[0]
     if siblings.lo.shape[0] == 0:
         return np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
-    a = anchors.center  # (N, 3)
-    d_t = np.linalg.norm(a - target.center, axis=-1)  # (N,)
-    d_s = np.linalg.norm(a[:, None, :] - siblings.center[None, :, :], axis=-1)  # (N, S)
-    margin = np.maximum(ORDINAL_MIN_GAP, ORDINAL_MIN_RATIO * d_t)
+    d_t = _distances(anchors, Box(target.lo[None], target.hi[None]), surface)[:, 0]  # (N,)
+    d_s = _distances(anchors, siblings, surface)  # (N, S)
+    margin = np.maximum(min_gap, min_ratio * d_t)
     closest = d_s.min(axis=1) - d_t >= margin
     farthest = d_t - d_s.max(axis=1) >= margin
     return closest, farthest
 
 
-# --- all relations of one target ----------------------------------------------------------------------------
+def ranked_ordinal_relations(
+    target: Box, siblings: Box, anchors: Box, *, depth: int, min_scaled_gap: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Closest / farthest by a ranking that must be clear over its first `depth` places.
+
+    For each anchor, sort the target's class (target and siblings, at least two objects) by centre distance
+    d_(1) <= d_(2) <= ... and let L be the mean length of the first k = min(depth, n) objects' boxes projected
+    on the direction to the anchor. Then
+
+        closest   <=>  the target is first  and  (d_(j+1) - d_(j)) L > min_scaled_gap for all j < k
+        farthest  <=>  the target is last   and  the same over the last k places.
+
+    Returns two (N,) masks over the N anchors; both all-false without siblings.
+    """
+    n = anchors.lo.shape[0]
+    if siblings.lo.shape[0] == 0:
+        return np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+    group = Box(
+        np.concatenate([target.lo[None], siblings.lo]), np.concatenate([target.hi[None], siblings.hi])
+    )
+    d = _distances(anchors, group, surface=False)  # (N, M), column 0 is the target
+    direction = anchors.center[:, None, :] - group.center[None, :, :]  # (N, M, 3)
+    direction /= np.maximum(np.linalg.norm(direction, axis=-1, keepdims=True), 1e-9)
+    lengths = np.sum(group.size[None] * np.abs(direction), axis=-1)  # (N, M)
+    order = np.argsort(d, axis=1, kind="stable")  # (N, M)
+    d_sorted = np.take_along_axis(d, order, axis=1)
+    l_sorted = np.take_along_axis(lengths, order, axis=1)
+    k = min(depth, group.lo.shape[0])
+
+    def clear(dist: np.ndarray, length: np.ndarray) -> np.ndarray:
+        return np.all(
+            np.abs(np.diff(dist, axis=1)) * length.mean(axis=1, keepdims=True) > min_scaled_gap, axis=1
+        )
+
+    closest = (order[:, 0] == 0) & clear(d_sorted[:, :k], l_sorted[:, :k])
+    farthest = (order[:, -1] == 0) & clear(d_sorted[:, ::-1][:, :k], l_sorted[:, ::-1][:, :k])
+    return closest, farthest
+
+
+# --- all relations of one target (vlmap convention) ---------------------------------------------------------
 
 
 def true_groundings(
@@ -397,11 +685,12 @@ def true_groundings(
     others: Sequence[SceneObject],
     placements: Mapping[str, Relation] | None = None,
 ) -> list[Grounding]:
-    """Every true (relation, anchor(s)) reading of the target's place among `others` (the target excluded).
+    """Every true (relation, anchor(s)) reading of the target's place among `others` (the target excluded),
+    by the vlmap convention.
 
     `placements` maps anchor ids to ON/IN where the true support is known (AI2-THOR's parent receptacles):
     then on/in come from it alone, and the box predicates for on/in only keep those anchors out of "near".
-    Closest/farthest need at least one other object with the target's label in `others`.
+    Closest/farthest need at least one other object of the target's class in `others`.
     """
     if not others:
         return []
@@ -409,8 +698,8 @@ def true_groundings(
     tbox = Box.of(target)
     ids = [o.id for o in others]
     labels = [o.label for o in others]
-    label = target.label.lower()
-    other_class = np.array([not same_kind(lab, label) for lab in labels])
+    same = np.array([same_class(lab, target.label) for lab in labels])
+    other_class = ~same
 
     def allowed(relation: Relation) -> np.ndarray:
         return other_class & np.array([anchor_allowed(relation, lab) for lab in labels])
@@ -435,8 +724,7 @@ def true_groundings(
     }
     out = [Grounding(rel, (ids[i],)) for rel, mask in masks.items() for i in np.flatnonzero(mask).tolist()]
 
-    pair_ok = allowed(Relation.BETWEEN)
-    idx = np.flatnonzero(pair_ok)
+    idx = np.flatnonzero(allowed(Relation.BETWEEN))
     if idx.size >= 2:
         i, j = np.triu_indices(idx.size, k=1)
         first, second = idx[i], idx[j]
@@ -446,10 +734,9 @@ def true_groundings(
             for a, b in zip(first[hit].tolist(), second[hit].tolist(), strict=True)
         )
 
-    siblings = [o for o in others if o.label.lower() == label]
-    if siblings:
+    if same.any():
         ord_idx = np.flatnonzero(allowed(Relation.CLOSEST))
-        closest, farthest = ordinal_relations(tbox, Box.of(siblings), boxes.take(ord_idx))
+        closest, farthest = ordinal_relations(tbox, boxes.take(same), boxes.take(ord_idx))
         out.extend(Grounding(Relation.CLOSEST, (ids[k],)) for k in ord_idx[closest].tolist())
         out.extend(Grounding(Relation.FARTHEST, (ids[k],)) for k in ord_idx[farthest].tolist())
     return out
