@@ -1,10 +1,12 @@
-"""The grounding-case builder: relation predicates on hand-made boxes, AI2-THOR reading, and the builder
-end to end on real fixture scenes (tests/resources/data)."""
+"""The grounding-case builder: relation predicates on hand-made boxes, templates, AI2-THOR reading, and the
+builder end to end on real fixture scenes (tests/resources/data): splits, conventions, houses, shifted
+maps."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from collections import Counter
 from pathlib import Path
 
@@ -13,12 +15,11 @@ import pytest
 
 from app.cli import main
 from app.data import relations as rel
+from app.data.augment import FrameMotion
 from app.data.build import (
     SPLITS,
     BuildConfig,
-    RigidMotion,
     build_cases,
-    move_case,
     read_ai2thor,
     read_scannet,
     room_key,
@@ -26,11 +27,14 @@ from app.data.build import (
     thor_placement_relation,
     write_build,
 )
-from app.data.cases import read_cases
-from app.data.relations import Box, Grounding, holds, true_groundings
-from app.data.templates import RELATION_PHRASES, indefinite, is_plural, render_utterance
+from app.data.cases import GroundingCase, read_cases
+from app.data.conventions import Convention, holds
+from app.data.label_vocabularies import SCANNET_TO_NYU
+from app.data.relations import Box, Grounding, true_groundings
+from app.data.templates import RELATION_PHRASES, indefinite, is_plural, render_utterance, speaker_names
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneObject
+from app.vocabulary import same_class
 
 DATA = Path(__file__).parent / "resources" / "data"
 SCANNET = DATA / "scannet_scenes.jsonl"
@@ -157,11 +161,12 @@ def test_label_policy_of_anchors():
     assert all("c2" not in g.anchor_ids for g in found)  # never the target's own class
     assert (Relation.CLOSEST, ("d",)) in anchors  # the chair closest to the door
     assert not any(g.relation is Relation.CLOSEST for g in true_groundings(chair, room[:3]))  # no sibling
-    assert (
-        rel.same_kind("book", "Books")
-        and rel.same_kind("box", "boxes")
-        and not rel.same_kind("cup", "cupboard")
-    )
+    # Classes are the vocabulary's: plurals and synonyms are one class, a longer word is not.
+    assert same_class("book", "Books") and same_class("box", "boxes") and same_class("couch", "sofa")
+    assert not same_class("cup", "cupboard")
+    couch_twin = obj("s", "sofa", [1.5, 0.2, 0.4], [2.0, 0.9, 0.8])
+    on_couch = obj("p", "couch", [1.5, 0.2, 0.9], [0.4, 0.4, 0.2])
+    assert all("s" not in g.anchor_ids for g in true_groundings(on_couch, [*room, couch_twin]))
 
 
 def test_vectorised_predicates_match_pair_by_pair_calls():
@@ -207,6 +212,12 @@ def test_templates_cover_every_relation_and_agree_in_number():
     assert indefinite("toilet paper") == "some toilet paper"
     books = {render_utterance(Relation.ON, "books", ("desk",), rng) for _ in range(80)}
     assert not any("books is" in t for t in books)
+    # Every utterance names its target, by its label or another name the vocabulary gives it.
+    for relation in Relation:
+        anchors = ("table", "door")[: relation.n_anchors]
+        for _ in range(40):
+            text = render_utterance(relation, "trash can", anchors, rng, portable=True)
+            assert any(name in text for name in ("trash can", *speaker_names("trash can"))), text
     with pytest.raises(ValueError, match="takes 2"):
         render_utterance(Relation.BETWEEN, "mug", ("sofa",), rng)
 
@@ -270,12 +281,32 @@ def test_ai2thor_missing_parents_fall_back_to_the_base_object_or_are_skipped(tmp
 
 # --- the builder end to end ---------------------------------------------------------------------------------
 
-CONFIG = BuildConfig(seed=7, augment=2, max_cases_per_scene=30, unseen_fraction=0.4, val_seen_fraction=0.2)
+CONFIG = BuildConfig(
+    seed=7,
+    augment=2,
+    max_cases_per_scene=30,
+    unseen_fraction=0.3,
+    val_seen_fraction=0.2,
+    calib_fraction=0.3,
+    house_fraction=1.0,
+)
+# Copies of the fixture rooms under new scan ids ("scene1089_00", "bedrooms_95"): distinct rooms, so that
+# every split gets rooms and the training and calibration rooms make houses.
+COPY_IDS = {"scene0": "scene1", "bedrooms_0": "bedrooms_9", "kitchens_1": "kitchens_9"}
 
 
 @pytest.fixture(scope="module")
-def scenes():
+def real_scenes():
     return read_scannet(SCANNET) + read_ai2thor(AI2THOR)
+
+
+@pytest.fixture(scope="module")
+def scenes(real_scenes):
+    def renamed(scene_id: str) -> str:
+        prefix = next(p for p in COPY_IDS if scene_id.startswith(p))
+        return COPY_IDS[prefix] + scene_id[len(prefix) :]
+
+    return real_scenes + [dataclasses.replace(s, scene_id=renamed(s.scene_id)) for s in real_scenes]
 
 
 @pytest.fixture(scope="module")
@@ -283,10 +314,21 @@ def built(scenes):
     return list(build_cases(scenes, CONFIG))
 
 
-def _target_object(case) -> SceneObject:
+def _target_object(case: GroundingCase) -> SceneObject:
     return SceneObject(
         id="__target__", label=case.target.label, center=case.target.position, size=case.target.size
     )
+
+
+def _target_origin(case: GroundingCase) -> tuple[str, str]:
+    """(scan id, object id in that scan) of the case's target: house ids are "<room index>:<id>"."""
+    room = int(case.meta["target_region_id"])
+    target_id = case.meta["target_id"]
+    return case.meta["scene_ids"][room], target_id.split(":", 1)[1] if case.meta["rooms"] > 1 else target_id
+
+
+def _region_volume(case: GroundingCase) -> float:
+    return float(np.prod(case.scene_graph.region(case.meta["target_region_id"]).size))
 
 
 def test_every_split_gets_cases_and_targets_leave_their_graph(built):
@@ -301,22 +343,53 @@ def test_every_split_gets_cases_and_targets_leave_their_graph(built):
         labels = Counter(o.label for o in case.scene_graph.objects)
         by_id = {o.id: o.label for o in case.scene_graph.objects}
         assert case.meta["ambiguity"] == max(labels[by_id[a]] for a in hyp.anchor_ids)
+        assert case.meta["convention"] in {c.value for c in Convention}
+        assert case.meta["source"] in {"scannet", "ai2thor"}
         assert case.utterance.strip()
+    # What is written reads back as the same case (the file format holds the moved, yawed boxes).
+    for _, case in built[::50]:
+        assert GroundingCase.model_validate_json(case.model_dump_json(exclude_none=True)) == case
 
 
-def test_scannet_relations_hold_geometrically_also_after_augmentation(built):
-    scannet = [c for _, c in built if c.meta["source"] == "scannet"]
-    assert {c.meta["augmentation"] for c in scannet} == {0, 1, 2}
-    assert len({c.hypotheses[0].relation for c in scannet}) >= 6
-    for case in scannet:
+def test_every_convention_and_relation_is_represented(built):
+    by_convention = Counter((c.meta["convention"], c.hypotheses[0].relation) for _, c in built)
+    for convention in Convention:
+        relations = {r for (conv, r), n in by_convention.items() if conv == convention.value and n}
+        assert len(relations) >= 4, (convention, relations)
+    assert not any(r in (Relation.IN, Relation.NEAR) for conv, r in by_convention if conv == "sr3d")
+
+
+def test_relations_hold_in_the_canonical_frame_by_their_convention(built):
+    """The truth of a case is computed on the clean layout: its canonical copy (augmentation 0, outside
+    calib) shows exactly that layout, and the convention's predicates say the grounding holds there."""
+    canonical = [c for split, c in built if split != "calib" and c.meta["augmentation"] == 0]
+    assert {c.meta["rooms"] > 1 for c in canonical} == {False, True}
+    for case in canonical:
+        assert case.meta["frame"] == {"yaw": 0.0, "offset": [0.0, 0.0, 0.0], "boxes": "aabb"}
         hyp = case.hypotheses[0]
+        convention = Convention(case.meta["convention"])
+        if (
+            convention is Convention.VLMAP
+            and case.meta["source"] == "ai2thor"
+            and hyp.relation
+            in (
+                Relation.ON,
+                Relation.IN,
+            )
+        ):
+            continue  # AI2-THOR's on/in come from its parent receptacles (next test)
         grounding = Grounding(hyp.relation, tuple(hyp.anchor_ids))
-        assert holds(grounding, _target_object(case), case.scene_graph.objects), case.case_id
+        objects = case.scene_graph.objects
+        assert holds(convention, grounding, _target_object(case), objects, _region_volume(case)), case.case_id
 
 
 def test_ai2thor_on_in_follow_the_parent_receptacles_and_the_rest_the_boxes(built, scenes):
     placements = {s.scene_id: s.placements for s in scenes if s.source == "ai2thor"}
-    thor = [c for _, c in built if c.meta["source"] == "ai2thor"]
+    thor = [
+        c
+        for split, c in built
+        if c.meta["source"] == "ai2thor" and c.meta["convention"] == "vlmap" and c.meta["rooms"] == 1
+    ]
     relations = Counter(c.hypotheses[0].relation for c in thor)
     assert relations[Relation.ON] and relations[Relation.IN]
     for case in thor:
@@ -324,39 +397,125 @@ def test_ai2thor_on_in_follow_the_parent_receptacles_and_the_rest_the_boxes(buil
         if hyp.relation in (Relation.ON, Relation.IN):
             known = placements[case.meta["scene_id"]][case.meta["target_id"]]
             assert known[hyp.anchor_ids[0]] is hyp.relation
-        else:
-            grounding = Grounding(hyp.relation, tuple(hyp.anchor_ids))
-            assert holds(grounding, _target_object(case), case.scene_graph.objects), case.case_id
 
 
-def test_splits_are_disjoint_by_scene_and_by_target(built):
-    scenes_of = {s: {c.meta["scene_id"] for sp, c in built if sp == s} for s in SPLITS}
-    assert not scenes_of["val_unseen"] & (scenes_of["train"] | scenes_of["val_seen"])
-    targets_of = {
-        s: {(c.meta["scene_id"], c.meta["target_id"]) for sp, c in built if sp == s} for s in SPLITS
+def test_shifted_maps_are_moved_noisy_partial_copies_of_the_canonical_case(built):
+    originals = {c.case_id: c for sp, c in built if sp == "train" and c.meta["augmentation"] == 0}
+    moved = [c for sp, c in built if sp == "train" and c.meta["augmentation"] > 0]
+    assert len(moved) == 2 * len(originals)
+    frames: Counter[tuple[bool, str]] = Counter()
+    vocabularies: Counter[tuple[str, str]] = Counter()
+    for case in moved:
+        base = originals[case.case_id.rsplit("/", 1)[0]]
+        assert case.hypotheses == base.hypotheses and case.utterance == base.utterance
+        frame, noise = case.meta["frame"], case.meta["noise"]
+        motion = FrameMotion(frame["yaw"], tuple(frame["offset"]), frame["boxes"] == "yawed")
+        frames[motion.quarter_turns is None, frame["boxes"]] += 1
+        assert -2.0 <= frame["offset"][2] <= 5.0
+        assert case.target.position == pytest.approx(motion.points(base.target.position).tolist(), abs=1e-6)
+        before = {o.id: o for o in base.scene_graph.objects}
+        after = case.scene_graph.objects
+        assert {o.id for o in after} <= set(before) and set(case.hypotheses[0].anchor_ids) <= {
+            o.id for o in after
+        }
+        assert (
+            len(before) - len(after)
+            == noise["dropped"]
+            == math.floor(noise["drop_fraction"] * (len(before) - len(set(case.hypotheses[0].anchor_ids))))
+        )
+        assert noise["drop_fraction"] <= 0.2 and 0.05 <= noise["size_noise"] <= 0.10
+        reach = math.sqrt(3) * noise["center_jitter"] + 1e-3
+        for o in after:
+            expected = motion.points(before[o.id].center)
+            assert np.linalg.norm(np.subtract(o.center, expected)) <= reach
+            assert o.yaw == pytest.approx(0.0) or frame["boxes"] == "yawed"
+        vocabulary = case.meta["label_vocabulary"]
+        for o in after:
+            clean = before[o.id].label
+            if vocabulary == "nyu":
+                assert o.label == SCANNET_TO_NYU.get(clean, clean)
+            elif vocabulary == "ai2thor_types":
+                assert split_camel_case(o.label) == clean and " " not in o.label
+            else:
+                assert o.label == clean
+        vocabularies[case.meta["source"], vocabulary] += 1
+    assert frames[True, "yawed"] and frames[True, "aabb"] and frames[False, "aabb"]
+    assert vocabularies["scannet", "nyu"] and vocabularies["scannet", "native"]
+
+
+def test_calib_cases_are_shifted_maps_of_their_own_rooms(built):
+    calib = [c for sp, c in built if sp == "calib"]
+    assert calib and {c.meta["augmentation"] for c in calib} == {0}
+    assert all(c.meta["frame"]["yaw"] not in (0.0,) for c in calib)
+    assert any(c.meta["rooms"] > 1 for c in calib)
+    assert any(c.meta["label_vocabulary"] != "native" for c in calib)
+    assert all(0.10 <= c.meta["noise"]["size_noise"] <= 0.15 for c in calib)
+
+
+def test_splits_are_disjoint_by_room_and_by_target(built):
+    rooms_of = {
+        s: {room_key(c.meta["source"], scan) for sp, c in built if sp == s for scan in c.meta["scene_ids"]}
+        for s in SPLITS
     }
+    trained = rooms_of["train"] | rooms_of["val_seen"]
+    assert not rooms_of["val_unseen"] & trained and not rooms_of["calib"] & trained
+    assert not rooms_of["val_unseen"] & rooms_of["calib"]
+    targets_of = {s: {_target_origin(c) for sp, c in built if sp == s} for s in SPLITS}
     assert targets_of["val_seen"] and not targets_of["val_seen"] & targets_of["train"]
     assert {c.meta["augmentation"] for sp, c in built if sp != "train"} == {0}
+    houses = [c for sp, c in built if c.meta["rooms"] > 1]
+    assert {sp for sp, c in built if c.meta["rooms"] > 1} == {"train", "calib"}
+    for case in houses:
+        assert len(case.scene_graph.regions) == case.meta["rooms"] == len(case.meta["scene_ids"])
+        regions = {r.id for r in case.scene_graph.regions}
+        assert all(o.region_id in regions for o in case.scene_graph.objects)
 
 
-def test_scannet_rescans_of_one_room_stay_on_one_side(scenes):
+def test_targets_of_every_size_are_named_in_their_utterance(built, scenes):
+    labels = Counter(c.meta["target_name"] for _, c in built)
+    assert {"door", "window", "desk", "bed"} & set(labels)
+    assert not {"wall", "floor", "ceiling"} & set(labels)
+    for _, case in built:
+        name = case.meta["target_name"]
+        assert any(n in case.utterance for n in (name, *speaker_names(name))), case.utterance
+    small = list(build_cases(scenes, dataclasses.replace(CONFIG, all_targets=False, augment=0)))
+    assert not {"door", "window", "bed"} & {c.meta["target_name"] for _, c in small}
+
+
+def test_conventions_option_limits_the_definitions(scenes):
+    only = dataclasses.replace(CONFIG, conventions=(Convention.SR3D,), augment=0, house_fraction=0.0)
+    cases = [c for _, c in build_cases(scenes, only)]
+    assert cases and {c.meta["convention"] for c in cases} == {"sr3d"}
+    assert {c.hypotheses[0].relation for c in cases} <= {
+        Relation.CLOSEST,
+        Relation.FARTHEST,
+        Relation.BETWEEN,
+        Relation.ON,
+        Relation.ABOVE,
+        Relation.BELOW,
+    }
+
+
+def test_scannet_rescans_of_one_room_stay_on_one_side(real_scenes):
     assert room_key("scannet", "scene0179_01") == room_key("scannet", "scene0179_00") == "scannet/scene0179"
     assert room_key("ai2thor", "kitchens_13") == "ai2thor/kitchens_13"
     # A second scan "_01" of every ScanNet room: whichever room is drawn, both scans land on its side.
     rescans = [
-        dataclasses.replace(s, scene_id=s.scene_id[:-2] + "01") for s in scenes if s.source == "scannet"
+        dataclasses.replace(s, scene_id=s.scene_id[:-2] + "01") for s in real_scenes if s.source == "scannet"
     ]
-    pool = scenes + rescans
+    pool = real_scenes + rescans
+    config = dataclasses.replace(CONFIG, augment=0, house_fraction=0.0, unseen_fraction=0.4)
     for seed in (0, 1, 2):
         scans: dict[str, set[str]] = {s: set() for s in SPLITS}
-        for split, case in build_cases(pool, dataclasses.replace(CONFIG, seed=seed, augment=0)):
+        for split, case in build_cases(pool, dataclasses.replace(config, seed=seed)):
             if case.meta["source"] == "scannet":
                 scans[split].add(case.meta["scene_id"])
         rooms = {s: {room_key("scannet", scene) for scene in scans[s]} for s in SPLITS}
-        assert len(rooms["val_unseen"]) == 1
-        assert not rooms["val_unseen"] & (rooms["train"] | rooms["val_seen"])
-        (room,) = rooms["val_unseen"]
-        assert {room.split("/")[1] + "_00", room.split("/")[1] + "_01"} == scans["val_unseen"]
+        assert len(rooms["val_unseen"]) == 1 and len(rooms["calib"]) == 1
+        assert not rooms["val_unseen"] & (rooms["train"] | rooms["val_seen"] | rooms["calib"])
+        for split in ("val_unseen", "calib"):
+            (room,) = rooms[split]
+            assert {room.split("/")[1] + "_00", room.split("/")[1] + "_01"} == scans[split]
 
 
 def test_build_is_deterministic_for_a_seed(scenes, built):
@@ -364,32 +523,6 @@ def test_build_is_deterministic_for_a_seed(scenes, built):
     assert [(s, c.model_dump_json()) for s, c in again] == [(s, c.model_dump_json()) for s, c in built]
     other = list(build_cases(scenes, dataclasses.replace(CONFIG, seed=8)))
     assert [c.utterance for _, c in other] != [c.utterance for _, c in built]
-
-
-def test_augmentation_is_a_rigid_motion_of_the_whole_scene(built):
-    originals = {c.case_id: c for sp, c in built if sp == "train" and c.meta["augmentation"] == 0}
-    moved = [c for sp, c in built if sp == "train" and c.meta["augmentation"] > 0]
-    assert len(moved) == 2 * len(originals)
-    for case in moved:
-        base = originals[case.case_id.rsplit("/", 1)[0]]
-        assert case.hypotheses == base.hypotheses and case.utterance == base.utterance
-        anchor = case.hypotheses[0].anchor_ids[0]
-        d_new = np.subtract(case.target.position, case.scene_graph.object(anchor).center)
-        d_old = np.subtract(base.target.position, base.scene_graph.object(anchor).center)
-        assert np.linalg.norm(d_new) == pytest.approx(np.linalg.norm(d_old))
-        assert d_new[2] == pytest.approx(d_old[2])
-        assert sorted(case.target.size) == pytest.approx(sorted(base.target.size))
-
-
-def test_quarter_turn_moves_boxes_exactly():
-    motion = RigidMotion(1, (2.0, -1.0))
-    assert motion.point([1.0, 0.5, 0.3]) == [-0.5 + 2.0, 1.0 - 1.0, 0.3]
-    assert motion.size([0.4, 0.2, 0.9]) == [0.2, 0.4, 0.9]
-    table = obj("t", "table", [0, 0, 0.375], [1.2, 0.8, 0.75])
-    mug = obj("m", "mug", [0.5, 0.3, 0.8], [0.1, 0.1, 0.1])
-    for quarter in range(4):
-        m = RigidMotion(quarter, (0.3, 0.7))
-        assert rel.is_on(Box.of(m.object(mug)), Box.of(m.object(table)))
 
 
 def test_write_build_and_cli_report_the_counts(tmp_path, capsys):
@@ -410,11 +543,18 @@ def test_write_build_and_cli_report_the_counts(tmp_path, capsys):
             "1",
             "--unseen-fraction",
             "0.4",
+            "--calib-fraction",
+            "0.4",
+            "--conventions",
+            "vlmap,vla3d",
+            "--house-fraction",
+            "1",
             "--no-progress",
         ]
     )
     assert code == 0
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["config"]["conventions"] == ["vlmap", "vla3d"]
     for split in SPLITS:
         cases = list(read_cases(out / f"{split}.jsonl"))
         assert len(cases) == summary["cases"][split] > 0
@@ -423,8 +563,24 @@ def test_write_build_and_cli_report_the_counts(tmp_path, capsys):
             {(src, r): n for src, counts in summary["counts"][split].items() for r, n in counts.items()}
         )
         assert per_relation == listed
+        per_convention = Counter(
+            (c.meta["source"], c.meta["convention"], c.hypotheses[0].relation.value) for c in cases
+        )
+        by_convention = summary["counts_by_convention"][split]
+        assert per_convention == Counter(
+            {
+                (src, conv, r): n
+                for src, convs in by_convention.items()
+                for conv, counts in convs.items()
+                for r, n in counts.items()
+            }
+        )
         assert sum(summary["ambiguity_histogram"][split].values()) == len(cases)
-    assert str(out) in capsys.readouterr().out
+    assert summary["maps"]["train"]["rooms"] >= 1 and summary["maps"]["calib"]["rooms"] >= 1
+    printed = capsys.readouterr().out
+    assert str(out) in printed and "calib" in printed
+    with pytest.raises(SystemExit, match="conventions"):
+        main(["data", "build", "--scannet", str(SCANNET), "--out", str(out), "--conventions", "sr4d"])
 
 
 def test_write_build_returns_the_summary_it_writes(tmp_path, scenes):
@@ -433,11 +589,3 @@ def test_write_build_returns_the_summary_it_writes(tmp_path, scenes):
         s: summary.total(s) for s in SPLITS
     }
     assert summary.total("train") == sum(1 for _ in read_cases(tmp_path / "train.jsonl"))
-
-
-def test_move_case_keeps_the_graph_valid(built):
-    _, case = built[0]
-    moved = move_case(case, RigidMotion(3, (1.0, 2.0)))
-    again = type(case).model_validate_json(moved.model_dump_json())
-    assert again.scene_graph.objects[0].center != case.scene_graph.objects[0].center
-    assert {o.id for o in again.scene_graph.objects} == {o.id for o in case.scene_graph.objects}

@@ -1,344 +1,201 @@
 """Grounding cases from real layouts (ScanNet scans, AI2-THOR rooms), with relations computed from real boxes.
 
-For every scene the builder picks target objects, removes each target from the scene graph (and nothing else),
-lists the target's true relations to the remaining objects (`app.data.relations`), and emits a bounded number
-of (target, relation, anchor(s)) cases with a templated utterance (`app.data.templates`).
+The builder turns layouts (`app.data.layouts`) into maps: every room alone, and houses of several rooms of
+one source (`app.data.houses`). For every map it picks target objects, removes each target from the scene
+graph (and nothing else), lists the target's true relations to the remaining objects by one relation
+convention (`app.data.conventions`: vlmap, Sr3D or VLA-3D, drawn per target; Sr3D only for targets it would
+refer to), and emits a bounded number of (target, relation, anchor(s)) cases with an utterance in that
+convention's style (`app.data.templates`). Targets are any object but the room's shell (doors, windows and
+tables as well as mugs), less the fragments of their class (`fragment_ids`).
 
-* ScanNet: every relation comes from the boxes.
-* AI2-THOR: on/in come from the simulator's `parent_receptacles` (the receptacles an object really sits on
-  or in), mapped to "on" or "in" by receptacle type (`THOR_RECEPTACLE_RELATION`); the other relations come
-  from the boxes. "On the floor" placements are dropped (the floor is never an anchor). A parent id missing
-  from the scene falls back to its base object when the id names a part ("Sink|...|SinkBasin" -> "Sink|..."),
-  else the placement is skipped; both are counted in the summary.
+Relations are computed once per target, over the whole map, from the clean boxes in the layout's frame.
+A case's map may then be shown moved (any yaw, offset and floor height), with box noise, missing objects
+and another dataset's raw labels (`app.data.augment`, `app.data.label_vocabularies`): the relations stay
+those of the clean layout, which a rigid motion leaves true and a reconstruction's errors do not change.
 
-Splits: `val_unseen` holds whole scenes never seen in training, a seeded ~`unseen_fraction` of the rooms of
-each source (ScanNet rescans "sceneXXXX_YY" of one room XXXX stay together); `val_seen` holds held-out targets
-of the training scenes; `train` the rest, augmented by K rigid motions of the whole scene. The motions turn
-the scene about z by a multiple of 90 degrees (so axis-aligned boxes stay axis-aligned, with x/y sizes swapped
-on odd quarter turns, and no object needs a yaw) and shift it in the floor plane; relations are invariant.
+Splits, by whole rooms (ScanNet rescans "sceneXXXX_YY" of one room XXXX stay together), per source:
+
+* `val_unseen`: a seeded ~`unseen_fraction` of the rooms, never trained on; single rooms, canonical frame.
+* `calib`: a further seeded ~`calib_fraction` of the rooms, in neither train nor val_unseen, built with the
+  shifted settings (`CALIB_SHIFT`: continuous yaw, heavier noise, raw labels more often; houses of calib
+  rooms; all conventions), for checkpoint selection and post-hoc calibration.
+* `val_seen`: held-out targets (~`val_seen_fraction`) of the training rooms, canonical frame.
+* `train`: the other targets of the training rooms, alone and in houses; each case in the canonical frame
+  (augmentation 0) and `augment` times more as a shifted map (`TRAIN_SHIFT`, augmentation 1..K).
+
+`meta["source"]` stays the layout's source, so leave-one-source-out training can filter on it.
 """
 
 from __future__ import annotations
 
 import json
-import re
 import zlib
 from collections import Counter, defaultdict
-from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from app.data.augment import (
+    CALIB_SHIFT,
+    IDENTITY,
+    NO_NOISE,
+    TRAIN_SHIFT,
+    FrameMotion,
+    Shift,
+    observed_objects,
+    random_motion,
+    random_noise,
+    without_noise,
+    without_raw_labels,
+    without_yaw,
+)
 from app.data.cases import CaseHypothesis, CaseTarget, GroundingCase
-from app.data.relations import Grounding, is_structure, label_set, true_groundings
-from app.data.templates import render_utterance
+from app.data.conventions import Convention, groundings, sr3d_context_ok, sr3d_in_center, sr3d_next_to
+from app.data.houses import MapLayout, draw_houses, join_rooms, room_map
+from app.data.label_vocabularies import NATIVE, renamed_labels, vocabulary_of
+from app.data.layouts import (
+    LayoutScene,
+    is_grounding_target,
+    is_target_candidate,
+    read_ai2thor,
+    read_scannet,
+    room_key,
+    split_camel_case,
+    thor_placement_relation,
+)
+from app.data.relations import Grounding
+from app.data.templates import render_sr3d, render_utterance, render_vla3d
 from app.errors import InvalidInput
 from app.grounding.relations import Relation
-from app.scene_graph.model import Region, SceneGraph, SceneObject
+from app.scene_graph.model import SceneGraph, SceneObject
 
-SPLITS = ("train", "val_seen", "val_unseen")
+__all__ = [
+    "SOURCES",
+    "SPLITS",
+    "BuildConfig",
+    "BuildSummary",
+    "LayoutScene",
+    "build_cases",
+    "calib_rooms",
+    "fragment_ids",
+    "is_grounding_target",
+    "is_target_candidate",
+    "read_ai2thor",
+    "read_scannet",
+    "room_key",
+    "split_camel_case",
+    "thor_placement_relation",
+    "unseen_rooms",
+    "write_build",
+]
+
+SPLITS = ("train", "val_seen", "val_unseen", "calib")
 SOURCES = ("scannet", "ai2thor")
 
-# Boxes thinner than this (two AI2-THOR objects have a zero side) are widened to it.
-MIN_SIZE = 0.01
-# Targets are small or medium: footprint sides and height at most these (metres).
-TARGET_MAX_SIDE = 1.5
-TARGET_MAX_HEIGHT = 2.0
-# A ScanNet object counts as portable ("I left my ...") when no side exceeds this.
-PORTABLE_MAX_SIDE = 0.6
 # Targets whose box volume is below this fraction of their label's median volume are fragments (see
 # `fragment_ids`); the median needs at least FRAGMENT_MIN_COUNT instances of the label.
 FRAGMENT_VOLUME_RATIO = 0.2
 FRAGMENT_MIN_COUNT = 10
-# Largest floor-plane shift of an augmentation (metres, per axis).
-AUGMENT_MAX_SHIFT = 5.0
-
-# Built-in fixtures and parts of furniture: real objects, and fine anchors, but not what people look for.
-FIXTURES = label_set(
-    "kitchen cabinets, kitchen cabinet, cabinet, cabinets, bathroom cabinet, counter, kitchen counter, "
-    "countertop, bathroom vanity, shower, bathtub, bathtub basin, sink, sink basin, toilet, radiator, "
-    "whiteboard, blackboard, bulletin board, board, closet, wardrobe closet, refrigerator, fridge, "
-    "stove, oven, range hood, dishwasher, shower curtain rod, closet rod, fireplace, drawer, shelf, "
-    "stove burner, stove knob, faucet, shower head, towel holder, hand towel holder, "
-    "toilet paper hanger, light switch, bathroom stall, mailboxes, water heater, washing machine, "
-    "clothes dryer, bar, ledge, windowsill"
-)
-
-# How an AI2-THOR receptacle holds what it carries. Types absent from the table default to "on".
-_THOR_CONTAINING = (
-    "Fridge Cabinet Drawer Microwave Box GarbageCan BathtubBasin SinkBasin Safe LaundryHamper Pot Pan Bowl "
-    "Cup Mug Kettle CoffeeMachine Toaster"
-)
-_THOR_SUPPORTING = (
-    "CounterTop DiningTable CoffeeTable SideTable Desk Shelf ShelvingUnit Dresser Bed Sofa ArmChair Chair "
-    "Stool Ottoman Footstool TVStand Toilet TowelHolder HandTowelHolder ToiletPaperHanger StoveBurner Plate "
-    "DogBed Sink Bathtub"
-)
-THOR_RECEPTACLE_RELATION: dict[str, Relation] = {
-    **dict.fromkeys(_THOR_CONTAINING.split(" "), Relation.IN),
-    **dict.fromkeys(_THOR_SUPPORTING.split(" "), Relation.ON),
-}
-THOR_ROOM_NAMES = {
-    "kitchens": "kitchen",
-    "living_rooms": "living room",
-    "bedrooms": "bedroom",
-    "bathrooms": "bathroom",
-    "robothor": "apartment",
-}
-# Compound words that CamelCase splitting would tear apart.
-_THOR_LABEL_OVERRIDES = {
-    "CounterTop": "countertop",
-    "BasketBall": "basketball",
-    "KeyChain": "keychain",
-    "TableTopDecor": "tabletop decor",
-    "ArmChair": "armchair",
-}
-_CAMEL_WORD = re.compile(r"[A-Z]+(?![a-z])|[A-Z][a-z]*|[a-z]+|\d+")
-_SCANNET_ROOM = re.compile(r"^(scene\d{4})_\d{2}$")
-
-
-def split_camel_case(object_type: str) -> str:
-    """An AI2-THOR object type as words: "DiningTable" -> "dining table", "TVStand" -> "tv stand"."""
-    if object_type in _THOR_LABEL_OVERRIDES:
-        return _THOR_LABEL_OVERRIDES[object_type]
-    return " ".join(w.lower() for w in _CAMEL_WORD.findall(object_type))
-
-
-def thor_placement_relation(receptacle_type: str) -> Relation:
-    """IN for receptacles that enclose (Fridge, Drawer, SinkBasin, ...), ON for those that support."""
-    return THOR_RECEPTACLE_RELATION.get(receptacle_type, Relation.ON)
-
-
-def room_key(source: str, scene_id: str) -> str:
-    """The physical room of a scene: rescans "scene0010_00" and "scene0010_01" share "scannet/scene0010"."""
-    match = _SCANNET_ROOM.match(scene_id) if source == "scannet" else None
-    return f"{source}/{match.group(1) if match else scene_id}"
-
-
-def is_target_candidate(label: str, size: Sequence[float]) -> bool:
-    """Small or medium, movable-looking objects: no structure, no fixture, not too big."""
-    text = label.strip().lower()
-    if is_structure(text) or text in FIXTURES:
-        return False
-    return max(size[0], size[1]) <= TARGET_MAX_SIDE and size[2] <= TARGET_MAX_HEIGHT
-
-
-@dataclass
-class LayoutScene:
-    """One real layout, normalised: objects in one region, known placements, candidate targets."""
-
-    source: str
-    scene_id: str
-    region: Region
-    objects: list[SceneObject]
-    # target id -> {anchor id: ON or IN}; None where on/in must come from the boxes (ScanNet).
-    placements: dict[str, dict[str, Relation]] | None
-    portable: frozenset[str]
-    targets: list[str]
-    notes: Counter[str] = field(default_factory=Counter)
-
-
-def _box_values(raw: dict[str, Any], where: str) -> tuple[list[float], list[float]]:
-    try:
-        center = [float(v) for v in raw["center"]]
-        size = [max(float(v), MIN_SIZE) for v in raw["size"]]
-    except (KeyError, TypeError, ValueError) as exc:
-        msg = f"object without a usable center/size: {exc}"
-        raise InvalidInput(msg, where) from exc
-    if len(center) != 3 or len(size) != 3:
-        msg = "center and size need three values"
-        raise InvalidInput(msg, where)
-    return center, size
-
-
-def _extent_region(name: str, objects: Sequence[SceneObject]) -> Region:
-    lo = np.min([o.min_corner for o in objects], axis=0)
-    hi = np.max([o.max_corner for o in objects], axis=0)
-    return Region(id="0", name=name, center=(0.5 * (lo + hi)).tolist(), size=(hi - lo).tolist())
-
-
-def _read_jsonl(path: Path) -> Iterator[tuple[int, dict[str, Any]]]:
-    with path.open(encoding="utf-8") as fh:
-        for number, line in enumerate(fh, start=1):
-            if line.strip():
-                yield number, json.loads(line)
-
-
-def read_scannet(path: str | Path) -> list[LayoutScene]:
-    """ScanNet scenes (`scannet_train_scenes.jsonl`): boxes only; on/in will come from the boxes."""
-    scenes = []
-    for number, raw in _read_jsonl(Path(path)):
-        objects = []
-        for k, o in enumerate(raw["objects"]):
-            center, size = _box_values(o, f"{path}:{number}:objects[{k}]")
-            label = str(o["label"]).strip().lower()
-            objects.append(SceneObject(id=str(o["id"]), label=label, center=center, size=size, region_id="0"))
-        if not objects:
-            continue
-        portable = frozenset(
-            o.id for o in objects if max(o.size) <= PORTABLE_MAX_SIDE and not is_structure(o.label)
-        )
-        scenes.append(
-            LayoutScene(
-                source="scannet",
-                scene_id=str(raw["scene_id"]),
-                region=_extent_region("room", objects),
-                objects=objects,
-                placements=None,
-                portable=portable,
-                targets=[o.id for o in objects if is_target_candidate(o.label, o.size)],
-            )
-        )
-    return scenes
-
-
-def _thor_placements(
-    raw_objects: list[dict[str, Any]], notes: Counter[str]
-) -> dict[str, dict[str, Relation]]:
-    types = {str(o["id"]): str(o["label"]) for o in raw_objects}
-    placements: dict[str, dict[str, Relation]] = {}
-    for o in raw_objects:
-        found: dict[str, Relation] = {}
-        for parent in o.get("parent_receptacles") or []:
-            parent = str(parent)
-            part = parent.rsplit("|", 1)[-1]
-            if parent in types:
-                anchor, kind = parent, types[parent]
-            elif parent.count("|") >= 4 and part.isalpha() and parent.rsplit("|", 1)[0] in types:
-                # "Sink|x|y|z|SinkBasin" without its basin object: the sink itself, held the basin's way.
-                anchor, kind = parent.rsplit("|", 1)[0], part
-                notes["placement_parent_resolved_to_base"] += 1
-            else:
-                notes["placement_parent_missing"] += 1
-                continue
-            if types[anchor] == "Floor":
-                notes["placement_on_floor_dropped"] += 1
-                continue
-            found[anchor] = thor_placement_relation(kind)
-        if found:
-            placements[str(o["id"])] = found
-    return placements
-
-
-def read_ai2thor(path: str | Path) -> list[LayoutScene]:
-    """AI2-THOR rooms (`ai2thor_scenes.jsonl`): CamelCase types become words; parents give on/in."""
-    scenes = []
-    for number, raw in _read_jsonl(Path(path)):
-        room_type = str(raw.get("room_type", ""))
-        notes: Counter[str] = Counter()
-        objects = []
-        for k, o in enumerate(raw["objects"]):
-            center, size = _box_values(o, f"{path}:{number}:objects[{k}]")
-            label = split_camel_case(str(o["label"]))
-            objects.append(SceneObject(id=str(o["id"]), label=label, center=center, size=size, region_id="0"))
-        if not objects:
-            continue
-        region_name = THOR_ROOM_NAMES.get(room_type, room_type.replace("_", " ").rstrip("s") or "room")
-        scenes.append(
-            LayoutScene(
-                source="ai2thor",
-                scene_id=str(raw["scene_id"]),
-                region=_extent_region(region_name, objects),
-                objects=objects,
-                placements=_thor_placements(raw["objects"], notes),
-                portable=frozenset(str(o["id"]) for o in raw["objects"] if o.get("pickupable")),
-                targets=[o.id for o in objects if is_target_candidate(o.label, o.size)],
-                notes=notes,
-            )
-        )
-    return scenes
-
-
-# --- splits and rigid motions -------------------------------------------------------------------------------
+# Targets whose relations are computed per map (a seeded draw): enough for the per-map cap on cases, and
+# a bound on the cost of a house's hundreds of objects.
+MAX_EVALUATED_TARGETS = 80
+# How often each convention is drawn for a target it applies to.
+CONVENTION_WEIGHTS = {Convention.VLMAP: 0.4, Convention.SR3D: 0.3, Convention.VLA3D: 0.3}
 
 
 def _stable_seed(seed: int, *parts: str) -> list[int]:
     return [seed, *(zlib.crc32(p.encode("utf-8")) for p in parts)]
 
 
-def unseen_rooms(scenes: Iterable[LayoutScene], fraction: float, seed: int) -> set[str]:
-    """Room keys held out as `val_unseen`: per source, round(fraction * rooms) of them, drawn by the seed."""
-    if not 0.0 <= fraction <= 1.0:
-        msg = f"unseen fraction must lie in [0, 1], got {fraction}"
-        raise InvalidInput(msg, "unseen_fraction")
+def _rooms_by_source(scenes: Iterable[LayoutScene]) -> dict[str, list[str]]:
     by_source: dict[str, set[str]] = defaultdict(set)
     for s in scenes:
         by_source[s.source].add(room_key(s.source, s.scene_id))
+    return {source: sorted(keys) for source, keys in sorted(by_source.items())}
+
+
+def _check_fraction(fraction: float, name: str) -> None:
+    if not 0.0 <= fraction <= 1.0:
+        msg = f"{name.replace('_', ' ')} must lie in [0, 1], got {fraction}"
+        raise InvalidInput(msg, name)
+
+
+def unseen_rooms(scenes: Iterable[LayoutScene], fraction: float, seed: int) -> set[str]:
+    """Room keys held out as `val_unseen`: per source, round(fraction * rooms) of them, drawn by the seed."""
+    _check_fraction(fraction, "unseen_fraction")
     chosen: set[str] = set()
-    for source, keys in sorted(by_source.items()):
-        ordered = sorted(keys)
+    for source, ordered in _rooms_by_source(scenes).items():
         rng = np.random.default_rng(_stable_seed(seed, "unseen", source))
         n = round(fraction * len(ordered))
         chosen.update(ordered[i] for i in rng.permutation(len(ordered))[:n])
     return chosen
 
 
-@dataclass(frozen=True)
-class RigidMotion:
-    """Turn about z by `quarter_turns` x 90 degrees, then shift by (dx, dy)."""
-
-    quarter_turns: int
-    shift_xy: tuple[float, float]
-
-    def point(self, p: Sequence[float]) -> list[float]:
-        x, y, z = p
-        for _ in range(self.quarter_turns % 4):
-            x, y = -y, x
-        return [x + self.shift_xy[0], y + self.shift_xy[1], z]
-
-    def size(self, s: Sequence[float]) -> list[float]:
-        dx, dy, dz = s
-        return [dy, dx, dz] if self.quarter_turns % 2 else [dx, dy, dz]
-
-    def object(self, o: SceneObject) -> SceneObject:
-        return o.model_copy(update={"center": self.point(o.center), "size": self.size(o.size)})
-
-    def region(self, r: Region) -> Region:
-        return r.model_copy(update={"center": self.point(r.center), "size": self.size(r.size)})
-
-
-def random_motion(rng: np.random.Generator) -> RigidMotion:
-    shift = rng.uniform(-AUGMENT_MAX_SHIFT, AUGMENT_MAX_SHIFT, size=2)
-    return RigidMotion(int(rng.integers(4)), (float(shift[0]), float(shift[1])))
-
-
-def move_case(case: GroundingCase, motion: RigidMotion) -> GroundingCase:
-    """The same case with its whole scene (graph and target) moved rigidly."""
-    graph = case.scene_graph.model_copy(
-        update={
-            "objects": [motion.object(o) for o in case.scene_graph.objects],
-            "regions": [motion.region(r) for r in case.scene_graph.regions],
-        }
-    )
-    size = motion.size(case.target.size) if case.target.size is not None else None
-    target = case.target.model_copy(update={"position": motion.point(case.target.position), "size": size})
-    return case.model_copy(update={"scene_graph": graph, "target": target})
-
-
-# --- the builder --------------------------------------------------------------------------------------------
+def calib_rooms(scenes: Iterable[LayoutScene], fraction: float, seed: int, exclude: set[str]) -> set[str]:
+    """Room keys of the `calib` split: per source, round(fraction * rooms) of the rooms not in `exclude`."""
+    _check_fraction(fraction, "calib_fraction")
+    chosen: set[str] = set()
+    for source, ordered in _rooms_by_source(scenes).items():
+        free = [k for k in ordered if k not in exclude]
+        rng = np.random.default_rng(_stable_seed(seed, "calib", source))
+        n = min(round(fraction * len(ordered)), len(free))
+        chosen.update(free[i] for i in rng.permutation(len(free))[:n])
+    return chosen
 
 
 @dataclass(frozen=True)
 class BuildConfig:
     seed: int = 0
-    augment: int = 2
+    augment: int = 3
     max_cases_per_scene: int = 40
     cases_per_target: int = 3
     unseen_fraction: float = 0.15
     val_seen_fraction: float = 0.1
+    calib_fraction: float = 0.1
+    conventions: tuple[Convention, ...] = tuple(Convention)
+    # Houses per room of a split's pool (train, calib); 0: no houses.
+    house_fraction: float = 0.6
+    continuous_yaw: bool = True
+    box_noise: bool = True
+    raw_labels: bool = True
+    # Targets of every size (`is_grounding_target`), or only small and medium movable ones.
+    all_targets: bool = True
+
+    def shift(self, split: str) -> Shift | None:
+        """How the split's shifted maps are drawn; None for the canonical frame only."""
+        base = {"train": TRAIN_SHIFT, "calib": CALIB_SHIFT}.get(split)
+        if base is None:
+            return None
+        if not self.continuous_yaw:
+            base = without_yaw(base)
+        if not self.box_noise:
+            base = without_noise(base)
+        if not self.raw_labels:
+            base = without_raw_labels(base)
+        return base
+
+
+def _nested_counter() -> defaultdict[str, defaultdict[str, Counter[str]]]:
+    return defaultdict(lambda: defaultdict(Counter))
 
 
 @dataclass
 class BuildSummary:
-    """What the builder wrote: counts per split x source x relation, ambiguity histogram, skip notes."""
+    """What the builder wrote: counts per split x source x relation (and x convention), ambiguity histogram,
+    maps, skip notes."""
 
     counts: dict[str, dict[str, Counter[str]]] = field(
         default_factory=lambda: {s: {src: Counter() for src in SOURCES} for s in SPLITS}
     )
+    by_convention: dict[str, defaultdict[str, defaultdict[str, Counter[str]]]] = field(
+        default_factory=lambda: {s: _nested_counter() for s in SPLITS}
+    )
     ambiguity: dict[str, Counter[int]] = field(default_factory=lambda: {s: Counter() for s in SPLITS})
     scenes: dict[str, Counter[str]] = field(default_factory=lambda: {s: Counter() for s in SPLITS})
+    maps: dict[str, Counter[str]] = field(default_factory=lambda: {s: Counter() for s in SPLITS})
     notes: Counter[str] = field(default_factory=Counter)
 
     def total(self, split: str) -> int:
@@ -351,6 +208,13 @@ class BuildSummary:
                 out.update(c)
         return out
 
+    def add(self, split: str, case: GroundingCase) -> None:
+        source = case.meta["source"]
+        relation = case.hypotheses[0].relation.value if case.hypotheses else "none"
+        self.counts[split][source][relation] += 1
+        self.by_convention[split][source][case.meta["convention"]][relation] += 1
+        self.ambiguity[split][int(case.meta["ambiguity"])] += 1
+
     def to_json(self) -> dict[str, Any]:
         return {
             "cases": {s: self.total(s) for s in SPLITS},
@@ -358,15 +222,23 @@ class BuildSummary:
                 s: {src: dict(sorted(c.items())) for src, c in by_src.items()}
                 for s, by_src in self.counts.items()
             },
+            "counts_by_convention": {
+                s: {
+                    src: {conv: dict(sorted(c.items())) for conv, c in sorted(by_conv.items())}
+                    for src, by_conv in sorted(by_src.items())
+                }
+                for s, by_src in self.by_convention.items()
+            },
             "ambiguity_histogram": {
                 s: {str(k): v for k, v in sorted(c.items())} for s, c in self.ambiguity.items()
             },
             "scenes": {s: dict(c) for s, c in self.scenes.items()},
+            "maps": {s: dict(c) for s, c in self.maps.items()},
             "notes": dict(sorted(self.notes.items())),
         }
 
 
-def _ambiguity(anchor_ids: tuple[str, ...], objects: Sequence[SceneObject]) -> int:
+def _ambiguity(anchor_ids: Sequence[str], objects: Sequence[SceneObject]) -> int:
     labels = Counter(o.label for o in objects)
     by_id = {o.id: o.label for o in objects}
     return max(labels[by_id[a]] for a in anchor_ids)
@@ -387,78 +259,197 @@ class _Balancer:
         return picked
 
 
-def _scene_cases(
-    scene: LayoutScene,
-    split_of_target: dict[str, str],
+@dataclass
+class _Candidate:
+    target: SceneObject
+    split: str
+    convention: Convention
+    others: list[SceneObject]
+    by_relation: dict[Relation, list[Grounding]]
+
+
+def _draw_convention(
+    target: SceneObject, others: Sequence[SceneObject], config: BuildConfig, rng: np.random.Generator
+) -> Convention | None:
+    """A convention for the target, by CONVENTION_WEIGHTS over those that would refer to it."""
+    options = [c for c in config.conventions if c is not Convention.SR3D or sr3d_context_ok(target, others)]
+    if not options:
+        return None
+    weights = np.array([CONVENTION_WEIGHTS[c] for c in options])
+    return options[int(rng.choice(len(options), p=weights / weights.sum()))]
+
+
+def _utterance(
+    convention: Convention,
+    relation: Relation,
+    target: SceneObject,
+    anchors: Sequence[SceneObject],
+    others: Sequence[SceneObject],
+    portable: bool,
+    rng: np.random.Generator,
+) -> str:
+    labels = tuple(a.label for a in anchors)
+    if convention is Convention.SR3D:
+        next_to = relation is Relation.CLOSEST and sr3d_next_to(target, anchors[0], others)
+        in_center = relation is Relation.BETWEEN and sr3d_in_center(target, anchors[0], anchors[1])
+        return render_sr3d(relation, target.label, labels, rng, next_to=next_to, in_center=in_center)
+    if convention is Convention.VLA3D:
+        return render_vla3d(relation, target.label, labels, rng)
+    return render_utterance(relation, target.label, labels, rng, portable=portable)
+
+
+def _target_box(target: SceneObject, motion: FrameMotion) -> SceneObject:
+    """The target's (noise-free) box in the moved frame."""
+    centre, size, yaw = motion.boxes(
+        np.array([target.center]), np.array([target.size]), np.array([target.yaw])
+    )
+    return target.model_copy(
+        update={"center": centre[0].tolist(), "size": size[0].tolist(), "yaw": float(yaw[0])}
+    )
+
+
+def _case(
+    layout: MapLayout,
+    candidate: _Candidate,
+    grounding: Grounding,
+    utterance: str,
+    augmentation: int,
+    shift: Shift | None,
+    renamed: Mapping[str, str],
+    rng: np.random.Generator,
+) -> GroundingCase:
+    """The case of one grounding: in the canonical frame (`shift` None) or on a map drawn from the shift."""
+    target = candidate.target
+    vocabulary = NATIVE
+    labels: Mapping[str, str] = {}
+    if shift is None:
+        motion, noise, drop = IDENTITY, NO_NOISE, 0.0
+        objects, dropped = candidate.others, 0
+        regions = layout.regions
+    else:
+        motion, noise = random_motion(shift, rng), random_noise(shift, rng)
+        drop = float(rng.uniform(*shift.drop_fraction))
+        if renamed and rng.random() < shift.raw_label_probability:
+            labels = renamed
+            vocabulary = vocabulary_of(layout.source)
+        objects, dropped = observed_objects(
+            candidate.others,
+            motion=motion,
+            noise=noise,
+            drop_fraction=drop,
+            keep=frozenset(grounding.anchor_ids),
+            labels=labels,
+            rng=rng,
+        )
+        regions = [motion.region(r) for r in layout.regions]
+    moved = _target_box(target, motion)
+    relation = grounding.relation
+    anchors = "+".join(grounding.anchor_ids)
+    case_id = "/".join(
+        (layout.source, layout.map_id, target.id, candidate.convention.value, relation.value, anchors)
+    )
+    return GroundingCase(
+        case_id=case_id if augmentation == 0 else f"{case_id}/aug{augmentation}",
+        scene_graph=SceneGraph(regions=regions, objects=objects),
+        utterance=utterance,
+        target=CaseTarget(
+            label=labels.get(target.id, target.label),
+            position=moved.center,
+            size=(2.0 * moved.half_extent).tolist(),
+        ),
+        hypotheses=[CaseHypothesis(anchor_ids=list(grounding.anchor_ids), relation=relation)],
+        meta={
+            "source": layout.source,
+            "scene_id": layout.map_id,
+            "target_id": target.id,
+            "ambiguity": _ambiguity(grounding.anchor_ids, objects),
+            "augmentation": augmentation,
+            "convention": candidate.convention.value,
+            "scene_ids": list(layout.scene_ids),
+            "rooms": len(layout.scene_ids),
+            "floors": layout.floors,
+            "target_region_id": target.region_id,
+            "target_name": target.label,
+            "target_box": {"center": moved.center, "size": moved.size, "yaw": moved.yaw},
+            "frame": motion.to_json(),
+            "noise": {**noise.to_json(), "drop_fraction": round(drop, 4), "dropped": dropped},
+            "label_vocabulary": vocabulary,
+        },
+    )
+
+
+def _map_cases(
+    layout: MapLayout,
+    split_of_target: Mapping[str, str],
     config: BuildConfig,
-    balancer: _Balancer,
+    balancers: Mapping[Convention, _Balancer],
     notes: Counter[str],
 ) -> Iterator[tuple[str, GroundingCase]]:
-    """(split, case) pairs of one scene, originals up to the cap; train ones are also moved K times.
+    """(split, case) pairs of one map, up to `max_cases_per_scene` groundings; train ones also `augment`
+    times on shifted maps, calib ones only on a shifted map.
 
-    Targets whose available relations are the rarest so far go first, so the cap cuts the common ones.
+    Targets whose available relations are the rarest so far (in their convention) go first, so the cap cuts
+    the common ones.
     """
-    rng = np.random.default_rng(_stable_seed(config.seed, "scene", scene.source, scene.scene_id))
-    by_id = {o.id: o for o in scene.objects}
-    motions = [random_motion(rng) for _ in range(config.augment)]
+    rng = np.random.default_rng(_stable_seed(config.seed, "map", layout.source, layout.map_id))
+    by_id = {o.id: o for o in layout.objects}
+    volumes = {r.id: float(np.prod(r.size)) for r in layout.regions}
     candidates = []
-    for target_id, split in split_of_target.items():
-        others = [o for o in scene.objects if o.id != target_id]
-        placements = None if scene.placements is None else scene.placements.get(target_id, {})
+    for target_id in list(split_of_target)[:MAX_EVALUATED_TARGETS]:
+        target = by_id[target_id]
+        others = [o for o in layout.objects if o.id != target_id]
+        convention = _draw_convention(target, others, config, rng)
+        if convention is None:
+            notes["targets_outside_every_convention"] += 1
+            continue
+        placements = None if layout.placements is None else layout.placements.get(target_id, {})
         by_relation: dict[Relation, list[Grounding]] = defaultdict(list)
-        for g in true_groundings(by_id[target_id], others, placements):
+        found = groundings(
+            convention,
+            target,
+            others,
+            placements=placements,
+            region_volume=volumes.get(target.region_id or ""),
+        )
+        for g in found:
             by_relation[g.relation].append(g)
         if not by_relation:
-            notes["targets_without_relation"] += 1
+            notes[f"targets_without_relation_{convention.value}"] += 1
             continue
-        candidates.append((target_id, split, others, by_relation))
+        candidates.append(_Candidate(target, split_of_target[target_id], convention, others, by_relation))
     # A stable sort keeps the shuffled order among equally rare targets.
-    candidates.sort(key=lambda c: min(balancer.emitted[r] for r in c[3]))
+    candidates.sort(key=lambda c: min(balancers[c.convention].emitted[r] for r in c.by_relation))
+    renamed = renamed_labels(layout.source, {o.id: o.label for o in layout.objects}, layout.raw_labels)
     emitted = 0
-    for target_id, split, others, by_relation in candidates:
+    for candidate in candidates:
         budget = min(config.cases_per_target, config.max_cases_per_scene - emitted)
         if budget <= 0:
             break
-        target = by_id[target_id]
-        for relation in balancer.choose(by_relation, budget, rng):
-            options = by_relation[relation]
+        target, split = candidate.target, candidate.split
+        for relation in balancers[candidate.convention].choose(candidate.by_relation, budget, rng):
+            options = candidate.by_relation[relation]
             chosen = options[int(rng.integers(len(options)))]
-            anchors = tuple(by_id[a].label for a in chosen.anchor_ids)
-            case = GroundingCase(
-                case_id="/".join(
-                    (scene.source, scene.scene_id, target_id, relation.value, "+".join(chosen.anchor_ids))
-                ),
-                scene_graph=SceneGraph(regions=[scene.region], objects=others),
-                utterance=render_utterance(
-                    relation, target.label, anchors, rng, portable=target_id in scene.portable
-                ),
-                target=CaseTarget(label=target.label, position=list(target.center), size=list(target.size)),
-                hypotheses=[CaseHypothesis(anchor_ids=list(chosen.anchor_ids), relation=relation)],
-                meta={
-                    "source": scene.source,
-                    "scene_id": scene.scene_id,
-                    "target_id": target_id,
-                    "ambiguity": _ambiguity(chosen.anchor_ids, others),
-                    "augmentation": 0,
-                },
+            anchors = [by_id[a] for a in chosen.anchor_ids]
+            portable = target.id in layout.portable
+            utterance = _utterance(
+                candidate.convention, relation, target, anchors, candidate.others, portable, rng
             )
             emitted += 1
-            yield split, case
-            if split != "train":
+            shift = config.shift(split)
+            if split == "calib" and shift is not None:
+                yield split, _case(layout, candidate, chosen, utterance, 0, shift, renamed, rng)
                 continue
-            for index, motion in enumerate(motions, start=1):
-                update = {
-                    "case_id": f"{case.case_id}/aug{index}",
-                    "meta": {**case.meta, "augmentation": index},
-                }
-                yield split, move_case(case, motion).model_copy(update=update)
+            yield split, _case(layout, candidate, chosen, utterance, 0, None, renamed, rng)
+            if split == "train" and shift is not None:
+                for index in range(1, config.augment + 1):
+                    yield split, _case(layout, candidate, chosen, utterance, index, shift, renamed, rng)
 
 
 def fragment_ids(scenes: Sequence[LayoutScene]) -> set[tuple[str, str, str]]:
-    """(source, scene id, object id) of targets that are fragments of their class: box volume below
+    """(source, scene id, object id) of objects that are fragments of their class: box volume below
     FRAGMENT_VOLUME_RATIO x the median volume of the label in that source (labels with >= FRAGMENT_MIN_COUNT
     instances). ScanNet has partly segmented instances (a 30 cm "chair" floating at 1.2 m, its back seen over
-    a table) whose centre is not where the object is."""
+    a table) whose centre is not where the object is; they are never targets."""
     volumes: dict[tuple[str, str], list[float]] = defaultdict(list)
     for scene in scenes:
         for o in scene.objects:
@@ -466,23 +457,34 @@ def fragment_ids(scenes: Sequence[LayoutScene]) -> set[tuple[str, str, str]]:
     medians = {k: float(np.median(v)) for k, v in volumes.items() if len(v) >= FRAGMENT_MIN_COUNT}
     out = set()
     for scene in scenes:
-        by_id = {o.id: o for o in scene.objects}
-        for target_id in scene.targets:
-            o = by_id[target_id]
+        for o in scene.objects:
             median = medians.get((scene.source, o.label))
             if median is not None and float(np.prod(o.size)) < FRAGMENT_VOLUME_RATIO * median:
-                out.add((scene.source, scene.scene_id, target_id))
+                out.add((scene.source, scene.scene_id, o.id))
     return out
 
 
-def _assign_targets(scene: LayoutScene, unseen: bool, config: BuildConfig) -> dict[str, str]:
-    """Target id -> split, in the (seeded, shuffled) order targets are used."""
+def _assign_targets(scene: LayoutScene, room_split: str, config: BuildConfig) -> dict[str, str]:
+    """Target id -> split, in the (seeded, shuffled) order targets are used. `room_split` is "train" for a
+    training room (whose held-out targets go to val_seen), else the room's split."""
     rng = np.random.default_rng(_stable_seed(config.seed, "targets", scene.source, scene.scene_id))
-    order = [scene.targets[i] for i in rng.permutation(len(scene.targets))]
-    if unseen:
-        return dict.fromkeys(order, "val_unseen")
+    if config.all_targets:
+        targets = [o.id for o in scene.objects if is_grounding_target(o.label)]
+    else:
+        targets = list(scene.targets)
+    order = [targets[i] for i in rng.permutation(len(targets))]
+    if room_split != "train":
+        return dict.fromkeys(order, room_split)
     held = round(config.val_seen_fraction * len(order))
     return {t: ("val_seen" if k < held else "train") for k, t in enumerate(order)}
+
+
+def _house_targets(
+    house: MapLayout, split: str, splits: Mapping[tuple[str, str], str], rng: np.random.Generator
+) -> dict[str, str]:
+    """House object id -> split for the rooms' targets of `split`, in a seeded order."""
+    ids = [i for i, origin in house.origin.items() if splits.get(origin) == split]
+    return {ids[k]: split for k in rng.permutation(len(ids)).tolist()}
 
 
 def build_cases(
@@ -490,53 +492,79 @@ def build_cases(
     config: BuildConfig,
     progress: bool = False,
     notes: Counter[str] | None = None,
+    maps: Mapping[str, Counter[str]] | None = None,
 ) -> Iterator[tuple[str, GroundingCase]]:
-    """All (split, case) pairs, scene by scene in (source, scene id) order; deterministic for a seed.
+    """All (split, case) pairs: rooms in (source, scene id) order, then the train houses, then the calib
+    houses; deterministic for a seed.
 
-    `notes` (if given) counts what was skipped: scene-reading notes and targets without any true relation.
+    `notes` (if given) counts what was skipped: scene-reading notes, fragments, targets without any true
+    relation; `maps` (if given) counts the rooms and houses built per split.
     """
     notes = Counter() if notes is None else notes
     unseen = unseen_rooms(scenes, config.unseen_fraction, config.seed)
+    calib = calib_rooms(scenes, config.calib_fraction, config.seed, unseen)
     fragments = fragment_ids(scenes)
     ordered = sorted(scenes, key=lambda s: (s.source, s.scene_id))
-    balancer = _Balancer()
-    if progress:
-        from tqdm import tqdm
-
-        ordered = tqdm(ordered, desc="scenes", unit="scene")
+    room_splits: dict[str, str] = {}
+    target_splits: dict[tuple[str, str], str] = {}
+    plans: list[tuple[str, MapLayout | list[LayoutScene], dict[str, str] | None]] = []
     for scene in ordered:
         notes.update(scene.notes)
-        is_unseen = room_key(scene.source, scene.scene_id) in unseen
-        split_of_target = _assign_targets(scene, is_unseen, config)
+        key = room_key(scene.source, scene.scene_id)
+        room_split = "val_unseen" if key in unseen else "calib" if key in calib else "train"
+        room_splits[scene.scene_id] = room_split
+        split_of_target = _assign_targets(scene, room_split, config)
         for target_id in [t for t in split_of_target if (scene.source, scene.scene_id, t) in fragments]:
             del split_of_target[target_id]
             notes["targets_dropped_as_fragments"] += 1
-        yield from _scene_cases(scene, split_of_target, config, balancer, notes)
+        target_splits.update({(scene.scene_id, t): s for t, s in split_of_target.items()})
+        plans.append((room_split, room_map(scene), split_of_target))
+    for split in ("train", "calib"):
+        pool = [s for s in ordered if room_splits[s.scene_id] == split]
+        rng = np.random.default_rng(_stable_seed(config.seed, "houses", split))
+        count = round(config.house_fraction * len(pool))
+        plans.extend((split, rooms, None) for rooms in draw_houses(pool, count, rng))
+    balancers = {c: _Balancer() for c in Convention}
+    steps: Iterable[tuple[str, MapLayout | list[LayoutScene], dict[str, str] | None]] = plans
+    if progress:
+        from tqdm import tqdm
+
+        steps = tqdm(plans, desc="maps", unit="map")
+    houses: Counter[str] = Counter()
+    for split, plan, room_targets in steps:
+        if isinstance(plan, MapLayout):
+            layout, split_of_target = plan, room_targets or {}
+        else:
+            map_id = f"house-{split}-{houses[split]}"
+            houses[split] += 1
+            house_rng = np.random.default_rng(_stable_seed(config.seed, map_id))
+            layout = join_rooms(plan, map_id, house_rng)
+            split_of_target = _house_targets(layout, split, target_splits, house_rng)
+        if maps is not None:
+            maps[split]["houses" if layout.is_house else "rooms"] += 1
+        yield from _map_cases(layout, split_of_target, config, balancers, notes)
 
 
 def write_build(
     scenes: Sequence[LayoutScene], out_dir: str | Path, config: BuildConfig, progress: bool = False
 ) -> BuildSummary:
-    """Write train/val_seen/val_unseen JSONL and summary.json into `out_dir`; returns the summary."""
+    """Write train/val_seen/val_unseen/calib JSONL and summary.json into `out_dir`; returns the summary."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     summary = BuildSummary()
     seen_scenes: dict[str, set[tuple[str, str]]] = {s: set() for s in SPLITS}
     handles = {s: (out / f"{s}.jsonl").open("w", encoding="utf-8") for s in SPLITS}
     try:
-        for split, case in build_cases(scenes, config, progress, summary.notes):
+        for split, case in build_cases(scenes, config, progress, summary.notes, summary.maps):
             handles[split].write(case.model_dump_json(exclude_none=True))
             handles[split].write("\n")
-            source = case.meta["source"]
-            relation = case.hypotheses[0].relation.value if case.hypotheses else "none"
-            summary.counts[split][source][relation] += 1
-            summary.ambiguity[split][int(case.meta["ambiguity"])] += 1
-            seen_scenes[split].add((source, case.meta["scene_id"]))
+            summary.add(split, case)
+            seen_scenes[split].add((case.meta["source"], case.meta["scene_id"]))
     finally:
         for fh in handles.values():
             fh.close()
     for split, pairs in seen_scenes.items():
         summary.scenes[split].update(source for source, _ in pairs)
-    payload = {"config": config.__dict__, **summary.to_json()}
-    (out / "summary.json").write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
+    payload = {"config": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(config).items()}}
+    (out / "summary.json").write_text(json.dumps({**payload, **summary.to_json()}, indent=2) + "\n")
     return summary

@@ -1,5 +1,5 @@
-"""`vlmap data build` (grounding cases from real ScanNet / AI2-THOR layouts) and `vlmap data vla3d`
-(VLA-3D referential statements as grounding cases)."""
+"""`vlmap data build` (grounding cases from real ScanNet / AI2-THOR layouts, `app.data.build`) and
+`vlmap data vla3d` (VLA-3D referential statements as grounding cases)."""
 
 from __future__ import annotations
 
@@ -16,17 +16,47 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     build = sub.add_parser(
         "build",
         help="grounding cases from real layouts, relations computed from their boxes",
-        description="Write train.jsonl, val_seen.jsonl, val_unseen.jsonl and summary.json into --out.",
+        description="Write train.jsonl, val_seen.jsonl, val_unseen.jsonl, calib.jsonl and summary.json into "
+        "--out. Relations follow three conventions (vlmap, Sr3D, VLA-3D); rooms are also joined into houses; "
+        "train cases are repeated on moved, noisy, partial maps with other datasets' labels, calib cases are "
+        "built that way from rooms of their own.",
     )
     build.add_argument("--scannet", type=Path, default=None, help="ScanNet scenes (JSONL)")
     build.add_argument("--ai2thor", type=Path, default=None, help="AI2-THOR scenes (JSONL)")
     build.add_argument("--out", type=Path, required=True, help="output directory")
     build.add_argument("--seed", type=int, default=0)
-    build.add_argument("--augment", type=int, default=2, help="rigid motions per train case (default 2)")
-    build.add_argument("--max-cases-per-scene", type=int, default=40, help="un-augmented cases (default 40)")
+    build.add_argument(
+        "--augment",
+        type=int,
+        default=3,
+        help="shifted maps (frame, noise, labels) per train case (default 3)",
+    )
+    build.add_argument("--max-cases-per-scene", type=int, default=40, help="un-augmented cases per map")
     build.add_argument("--cases-per-target", type=int, default=3, help="relations sampled per target")
     build.add_argument("--unseen-fraction", type=float, default=0.15, help="rooms held out per source")
     build.add_argument("--val-seen-fraction", type=float, default=0.1, help="targets held out per scene")
+    build.add_argument(
+        "--calib-fraction", type=float, default=0.1, help="rooms per source for the calib split (default 0.1)"
+    )
+    build.add_argument(
+        "--conventions",
+        default="vlmap,sr3d,vla3d",
+        help="relation conventions to draw from, comma-separated (default vlmap,sr3d,vla3d)",
+    )
+    build.add_argument(
+        "--house-fraction",
+        type=float,
+        default=0.6,
+        help="houses joined per room of the train and calib pools (default 0.6; 0: no houses)",
+    )
+    build.add_argument(
+        "--no-continuous-yaw", action="store_true", help="shifted maps turn by quarter turns only"
+    )
+    build.add_argument("--no-box-noise", action="store_true", help="no box noise nor missing objects")
+    build.add_argument("--no-raw-labels", action="store_true", help="never rename into raw vocabularies")
+    build.add_argument(
+        "--small-targets-only", action="store_true", help="only small and medium movable objects as targets"
+    )
     build.add_argument("--no-progress", action="store_true", help="no progress bar")
     build.set_defaults(func=build_command)
 
@@ -42,7 +72,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def build_command(args: argparse.Namespace) -> int:
+    import time
+
     from app.data.build import SPLITS, BuildConfig, read_ai2thor, read_scannet, write_build
+    from app.data.conventions import Convention
 
     if args.scannet is None and args.ai2thor is None:
         msg = "give --scannet and/or --ai2thor"
@@ -50,6 +83,15 @@ def build_command(args: argparse.Namespace) -> int:
     if args.augment < 0 or args.max_cases_per_scene < 1 or args.cases_per_target < 1:
         msg = "--augment must be >= 0, --max-cases-per-scene and --cases-per-target >= 1"
         raise SystemExit(msg)
+    if args.house_fraction < 0:
+        msg = "--house-fraction must be >= 0"
+        raise SystemExit(msg)
+    names = [n.strip() for n in args.conventions.split(",") if n.strip()]
+    known = {c.value for c in Convention}
+    if not names or any(n not in known for n in names):
+        msg = f"--conventions takes a comma-separated subset of {', '.join(sorted(known))}"
+        raise SystemExit(msg)
+    start = time.perf_counter()
     scenes = []
     if args.scannet is not None:
         scenes += read_scannet(args.scannet)
@@ -62,17 +104,30 @@ def build_command(args: argparse.Namespace) -> int:
         cases_per_target=args.cases_per_target,
         unseen_fraction=args.unseen_fraction,
         val_seen_fraction=args.val_seen_fraction,
+        calib_fraction=args.calib_fraction,
+        conventions=tuple(Convention(n) for n in dict.fromkeys(names)),
+        house_fraction=args.house_fraction,
+        continuous_yaw=not args.no_continuous_yaw,
+        box_noise=not args.no_box_noise,
+        raw_labels=not args.no_raw_labels,
+        all_targets=not args.small_targets_only,
     )
     summary = write_build(scenes, args.out, config, progress=not args.no_progress)
+    elapsed = time.perf_counter() - start
     print(
-        f"wrote {len(scenes)} scenes' cases to {args.out}/ (" + ", ".join(f"{s}.jsonl" for s in SPLITS) + ")"
+        f"wrote {len(scenes)} scenes' cases to {args.out}/ ("
+        + ", ".join(f"{s}.jsonl" for s in SPLITS)
+        + f") in {elapsed:.0f} s"
     )
     relations = sorted(summary.relation_totals())
-    print(f"{'split':<11} {'source':<8} " + " ".join(f"{r:>8}" for r in relations) + f" {'total':>8}")
+    header = f"{'split':<11} {'source':<8} {'conv':<6} " + " ".join(f"{r:>8}" for r in relations)
+    print(header + f" {'total':>8}")
     for split in SPLITS:
-        for source, counts in summary.counts[split].items():
-            cells = " ".join(f"{counts[r]:>8}" for r in relations)
-            print(f"{split:<11} {source:<8} {cells} {sum(counts.values()):>8}")
+        for source, by_convention in sorted(summary.by_convention[split].items()):
+            for convention, counts in sorted(by_convention.items()):
+                cells = " ".join(f"{counts[r]:>8}" for r in relations)
+                print(f"{split:<11} {source:<8} {convention:<6} {cells} {sum(counts.values()):>8}")
+    print("maps: " + json.dumps({s: dict(c) for s, c in summary.maps.items()}))
     print("notes: " + json.dumps(dict(sorted(summary.notes.items()))))
     return 0
 
