@@ -70,6 +70,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     vla3d.add_argument("--out", type=Path, required=True, help="cases file to write (JSONL)")
     vla3d.set_defaults(func=vla3d_command)
 
+    referring = sub.add_parser(
+        "referring",
+        help="human referring expressions (target known, anchor not) as grounding cases",
+        description="Write one case per expression: the utterance, the scan's scene graph without the "
+        "target, the target's position; no hypotheses (app.data.referring).",
+    )
+    referring.add_argument("--expressions", type=Path, required=True, help="expressions (JSONL)")
+    referring.add_argument("--scenes", type=Path, required=True, help="the scans' boxes (JSONL)")
+    referring.add_argument("--out", type=Path, required=True, help="cases file to write (JSONL)")
+    referring.set_defaults(func=referring_command)
+
 
 def build_command(args: argparse.Namespace) -> int:
     import time
@@ -139,4 +150,16 @@ def vla3d_command(args: argparse.Namespace) -> int:
     report = write_vla3d_cases(args.folder, args.out)
     print(f"wrote {report.cases} cases to {args.out}")
     print(json.dumps(report.to_json(), indent=2))
+    return 0
+
+
+def referring_command(args: argparse.Namespace) -> int:
+    from app.data.cases import write_cases
+    from app.data.referring import ReferringReport, referring_cases, scene_objects
+
+    report = ReferringReport()
+    written = write_cases(args.out, referring_cases(args.expressions, scene_objects(args.scenes), report))
+    print(f"wrote {written} cases of {report.expressions} expressions to {args.out}")
+    if report.skipped:
+        print("skipped: " + json.dumps(dict(sorted(report.skipped.items()))))
     return 0
