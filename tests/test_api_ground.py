@@ -16,9 +16,9 @@ from app.api.app import create_app
 from app.api.routes.ground import to_response
 from app.api.services import Sensors
 from app.grounding.geometric import GeometricGrounder
-from app.grounding.hypotheses import Hypothesis
+from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis
 from app.grounding.lexical import LexicalProposer
-from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox
+from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, map_box
 from app.grounding.sensor import LanguageSensor
 from app.scene_graph.model import SceneGraph
 from app.settings import Settings
@@ -110,10 +110,11 @@ def test_two_tables_give_two_equally_weighted_hypotheses(client: TestClient, sce
     assert body["model"]["name"] == "geometric"
     assert set(body["timings_ms"]) == {"proposer", "grounder"}
     _assert_valid_mixture(body["mixture"])
-    # Each component belongs to one hypothesis and sits just above that hypothesis's table.
+    # Each hypothesis's component sits just above its table; the last, of no hypothesis, is the broad term's
+    # wide Gaussian.
     by_id = {o["id"]: o for o in scene_graph_dict["objects"]}
-    assert [c["hypothesis"] for c in body["mixture"]["components"]] == [0, 1]
-    for c in body["mixture"]["components"]:
+    assert [c["hypothesis"] for c in body["mixture"]["components"]] == [0, 1, None]
+    for c in body["mixture"]["components"][:2]:
         table = by_id[body["hypotheses"][c["hypothesis"]]["anchor_ids"][0]]
         top = table["center"][2] + table["size"][2] / 2
         assert c["mean"][2] == pytest.approx(top + 0.1)
@@ -167,11 +168,17 @@ def test_unmatched_anchor_falls_back_to_a_broad_prior(client: TestClient, scene_
     assert body["grounded"] is False
     assert "piano" in body["reason"]
     assert body["hypotheses"] == []
-    assert len(body["mixture"]["components"]) == 1
-    assert body["mixture"]["components"][0]["hypothesis"] is None  # a broad prior, of no hypothesis
     _assert_valid_mixture(body["mixture"])
-    # Broad: the prior spreads over the room (variance = width^2 / 12 of the scene's box).
-    assert min(np.diag(body["mixture"]["components"][0]["covariance"])[:2]) > 0.5
+    # The broad prior: uniform over the map's box (nine tenths of the mass and the floor), and a wide
+    # Gaussian about it (a tenth, of no hypothesis) for the places just outside.
+    (wide,) = body["mixture"]["components"]
+    assert wide["hypothesis"] is None and wide["weight"] == pytest.approx(0.1 * (1 - MIN_BACKGROUND_WEIGHT))
+    box = map_box(SceneGraph.model_validate(scene_graph_dict))
+    for term in body["mixture"]["uniform"]:
+        assert term["low"] == pytest.approx(box.low.tolist()) and term["high"] == pytest.approx(
+            box.high.tolist()
+        )
+    assert sum(t["weight"] for t in body["mixture"]["uniform"]) == pytest.approx(1.0 - wide["weight"])
 
 
 def _mutated(scene_graph: dict, path: tuple[Any, ...], value: Any) -> dict:
@@ -271,19 +278,23 @@ def test_uniform_boxes_are_served_beside_the_gaussians_of_each_hypothesis(
         boxed_client, scene_graph_dict, "I left my backpack on the table", query_points=points
     ).json()
     hypotheses, mixture = body["hypotheses"], body["mixture"]
-    assert len(hypotheses) == 2 and len(mixture["uniform"]) == 2
+    # Each hypothesis's box, then the broad term's (the map's box for beta_min, the broad density's).
+    assert len(hypotheses) == 2 and len(mixture["uniform"]) == 4
     _assert_valid_mixture(mixture)
-    # Two Gaussians per hypothesis, in hypothesis order, each pointing at its own hypothesis.
-    assert [c["hypothesis"] for c in mixture["components"]] == [0, 0, 1, 1]
+    keep = 1.0 - MIN_BACKGROUND_WEIGHT  # the lexical proposer leaves the broad term at its floor
+    # Two Gaussians per hypothesis, in hypothesis order, each pointing at its hypothesis; then the wide one.
+    assert [c["hypothesis"] for c in mixture["components"]] == [0, 0, 1, 1, None]
     by_id = {o["id"]: o for o in scene_graph_dict["objects"]}
-    for component in mixture["components"]:
+    for component in mixture["components"][:4]:
         h = hypotheses[component["hypothesis"]]
         table = by_id[h["anchor_ids"][0]]
         assert component["mean"][:2] == pytest.approx(table["center"][:2])
-    for h, pair in zip(hypotheses, [mixture["components"][:2], mixture["components"][2:]], strict=True):
-        assert [c["weight"] for c in pair] == pytest.approx([0.6 * h["weight"], 0.3 * h["weight"]])
-    for h, box in zip(hypotheses, mixture["uniform"], strict=True):
-        assert box["weight"] == pytest.approx(0.1 * h["weight"])
+    for h, pair in zip(hypotheses, [mixture["components"][:2], mixture["components"][2:4]], strict=True):
+        assert [c["weight"] for c in pair] == pytest.approx(
+            [0.6 * keep * h["weight"], 0.3 * keep * h["weight"]]
+        )
+    for h, box in zip(hypotheses, mixture["uniform"][:2], strict=True):
+        assert box["weight"] == pytest.approx(0.1 * keep * h["weight"])
         table = by_id[h["anchor_ids"][0]]
         centre = [(lo + hi) / 2 for lo, hi in zip(box["low"], box["high"], strict=True)]
         assert centre[:2] == pytest.approx(table["center"][:2])
@@ -302,7 +313,8 @@ def test_a_background_box_appended_to_the_mixture_belongs_to_no_hypothesis(scene
     body = to_response(replace(result, mixture=result.mixture.with_background(0.2, background)), sensor, None)
     mixture = body.mixture.model_dump()
     _assert_valid_mixture(mixture)
-    assert [c["hypothesis"] for c in mixture["components"]] == [0, 0, 1, 1]
-    assert [b["weight"] for b in mixture["uniform"]] == pytest.approx([0.04, 0.04, 0.2])
+    assert [c["hypothesis"] for c in mixture["components"]] == [0, 0, 1, 1, None]
+    weights = [b["weight"] for b in mixture["uniform"]]
+    assert weights[:2] == pytest.approx([0.8 * 0.049, 0.8 * 0.049]) and weights[-1] == pytest.approx(0.2)
     assert mixture["uniform"][-1]["low"] == background.low.tolist()
     assert mixture["uniform"][-1]["high"] == background.high.tolist()

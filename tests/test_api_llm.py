@@ -47,7 +47,8 @@ def test_llm_proposer_hypotheses_reach_the_answer_and_failures_fall_back_and_are
         )  # sent as chat
         server.script(*[Reply(body="not json at all")] * 3)
         fallback = client.post("/v1/ground", json=body).json()
-        assert {h["anchor_ids"][0] for h in fallback["hypotheses"]} == {"t1", "t2"}  # the built-in answer
+        anchored = {a for h in fallback["hypotheses"] for a in h["anchor_ids"]}
+        assert {"t1", "t2"} <= anchored  # the built-in answer
         metrics = client.get("/metrics").text
     assert 'vlmap_llm_fallbacks_total{reason="malformed_reply"} 1.0' in metrics
 

@@ -464,7 +464,7 @@ def test_the_belief_fuses_exactly_the_served_density_boxes_included(two_rooms: d
         session = _create(client, two_rooms, target_label="backpack")
         body = _say(client, session["id"], "my backpack is on the table")
         mixture = body["grounding"]["mixture"]
-        assert len(mixture["uniform"]) == 2 and body["fused"] is True
+        assert len(mixture["uniform"]) == 4 and body["fused"] is True  # the hypotheses' two, the broad term's
         lang = _grid(client, session["id"], layers=True)["lang"]
     grid = session["grid"]
     centers = VoxelGrid(tuple(grid["min_corner"]), tuple(grid["shape"]), grid["voxel_size"]).centers()

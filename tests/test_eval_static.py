@@ -34,6 +34,7 @@ from app.grounding.geometric import FixedGrounder
 from app.grounding.hypotheses import Hypothesis, Proposal, UtteranceParse
 from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, map_box
 from app.grounding.relations import Relation
+from app.grounding.sensor import Grounding, broad_prior
 from app.scene_graph.model import SceneGraph
 from tests.fake_llm_server import FakeLLMServer, Reply
 
@@ -241,8 +242,10 @@ class ScriptedProposer:
     def __init__(self, true_weight: float) -> None:
         self.true_weight = true_weight
 
+    parse = UtteranceParse(target="cup", relation=Relation.ON, anchor_phrases=("table",))
+
     def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal:
-        parse = UtteranceParse(target="cup", relation=Relation.ON, anchor_phrases=("table",))
+        parse = self.parse
         if "sofa" in utterance:
             return Proposal(parse, (), grounded=False, reason="no sofa")
         return Proposal(
@@ -251,6 +254,7 @@ class ScriptedProposer:
                 Hypothesis(("t1",), Relation.ON, weight=self.true_weight),
                 Hypothesis(("t2",), Relation.ON, weight=1.0 - self.true_weight),
             ),
+            background=0.0,  # the scoring is under test here, not the broad term
         )
 
 
@@ -283,12 +287,10 @@ def test_referent_metrics_and_uniform_weights_nll_with_a_proposer() -> None:
             sum(w * multivariate_normal(c, cov).pdf(y) for w, c in zip(weights, centres, strict=True))
         )
 
-    low, high = ROOM.bounds()
-    prior = multivariate_normal(0.5 * (low + high), np.diag(np.maximum(high - low, 0.1) ** 2 / 12.0))
     nll = [
         mixture_nll(targets[0], (0.8, 0.2)),
         mixture_nll(targets[1], (0.8, 0.2)),
-        -prior.logpdf(targets[2]),
+        float(-broad_prior(ROOM, ScriptedProposer.parse).logpdf(targets[2][None])[0]),  # no anchor
     ]
     uniform = [mixture_nll(targets[0], (0.5, 0.5)), mixture_nll(targets[1], (0.5, 0.5)), nll[2]]
     assert fixed["nll"] == pytest.approx(np.mean(nll), rel=1e-6)
@@ -296,7 +298,7 @@ def test_referent_metrics_and_uniform_weights_nll_with_a_proposer() -> None:
     assert fixed["uniform_weights_nll"] > fixed["nll"]
     rows = {row["case_id"]: row for row in result.per_case}
     assert rows["case-0"]["referent"]["top1"] is True
-    assert rows["case-2"]["fixed"]["components"] == 1
+    assert rows["case-2"]["fixed"]["components"] == 1  # the broad prior: uniform boxes and its wide Gaussian
 
 
 class MixtureGrounder:
@@ -500,19 +502,20 @@ def test_nees_and_point_of_a_two_component_density_are_its_moment_matched_ones()
     assert result.per_case[0]["core-tail"]["components"] == 4
 
 
-def test_uniform_weights_keep_the_sensors_own_box_and_spread_the_rest_evenly() -> None:
+def test_uniform_weights_keep_the_sensors_broad_term_and_spread_the_rest_evenly() -> None:
     g = CoreAndTailGrounder()
     densities = [g.density(ROOM, Hypothesis((a,), Relation.ON)) for a in ("t1", "t2")]
-    box = map_box(ROOM)
-    served = GaussianMixture.combine([0.8, 0.2], densities).with_background(0.1, box)
-    even = uniform_weights_mixture(served, densities)
+    broad = GaussianMixture.from_components([], [], boxes=[map_box(ROOM)], box_weights=[1.0])
+    served = GaussianMixture.combine([0.9, 0.1], [GaussianMixture.combine([0.8, 0.2], densities), broad])
+    parse = UtteranceParse(target="cup", relation=Relation.ON, anchor_phrases=("table",))
+    grounding = Grounding(Proposal(parse, ()), (), served, {}, tuple(densities), 0.1, broad)
+    even = uniform_weights_mixture(grounding)
     points = np.array([[1.3, 0.0, 0.4], [-2.7, 2.0, 0.0], [3.0, -2.0, 0.5], [0.0, 0.0, 2.0]])
     p = [np.exp(d.logpdf(points)) for d in densities]
-    expected = 0.9 * (0.5 * p[0] + 0.5 * p[1]) + 0.1 * np.exp(box.logpdf(points))
+    expected = 0.9 * (0.5 * p[0] + 0.5 * p[1]) + 0.1 * np.exp(map_box(ROOM).logpdf(points))
     np.testing.assert_allclose(np.exp(even.logpdf(points)), expected, rtol=1e-12)
-    assert uniform_weights_mixture(served, []) is served
-    with pytest.raises(ValueError, match="Gaussians"):
-        uniform_weights_mixture(served, densities[:1])
+    bare = Grounding(Proposal(parse, ()), (), broad, {}, (), 1.0, broad)
+    assert uniform_weights_mixture(bare) is broad
 
 
 class ProposerOnly:
@@ -523,7 +526,9 @@ class ProposerOnly:
     def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal:
         parse = UtteranceParse(target="cup", relation=Relation.NEAR, anchor_phrases=("table",))
         return Proposal(
-            parse, (Hypothesis(("t1",), Relation.NEAR, 0.6), Hypothesis(("t2",), Relation.NEAR, 0.4))
+            parse,
+            (Hypothesis(("t1",), Relation.NEAR, 0.6), Hypothesis(("t2",), Relation.NEAR, 0.4)),
+            background=0.0,
         )
 
 

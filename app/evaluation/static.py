@@ -91,7 +91,7 @@ from app.grounding.hypotheses import Hypothesis, Proposal
 from app.grounding.interfaces import Grounder, HypothesisProposer
 from app.grounding.mixture import GaussianMixture, map_box
 from app.grounding.relations import Relation
-from app.grounding.sensor import LanguageSensor
+from app.grounding.sensor import Grounding, LanguageSensor
 from app.scene_graph.model import SceneGraph
 
 log = logging.getLogger("vlmap.eval")
@@ -237,36 +237,17 @@ def moment_nees(density: GaussianMixture, target: np.ndarray) -> float:
     return float(nees(density.mean(), density.covariance(), target)[0])
 
 
-def uniform_weights_mixture(
-    mixture: GaussianMixture, densities: Sequence[GaussianMixture]
-) -> GaussianMixture:
-    """The served mixture with uniform weights over the hypotheses' densities, its own boxes kept.
-
-    With p(x) = (1 - v) sum_h w_h p_h(x) + sum_b v_b U(x; box_b) (v = sum_b v_b, the sensor's broad terms
-    appended after the densities' terms by `GaussianMixture.combine` and `with_background`), the answer is
-    (1 - v) sum_h p_h(x) / H + sum_b v_b U(x; box_b). Without densities (the broad prior) it is p itself.
-    """
-    if not densities:
-        return mixture
-    gaussians = sum(len(d.weights) for d in densities)
-    boxes = sum(len(d.box_weights) for d in densities)
-    if len(mixture.weights) != gaussians or len(mixture.box_weights) < boxes:
-        msg = (
-            f"the mixture holds {len(mixture.weights)} Gaussians and {len(mixture.box_weights)} boxes, "
-            f"not the densities' {gaussians} and {boxes} (+ its own boxes)"
-        )
-        raise ValueError(msg)
-    own = mixture.box_weights[boxes:]  # (B_own,)
-    even = GaussianMixture.combine(np.ones(len(densities)), densities)
-    keep = 1.0 - float(np.sum(own))
-    return GaussianMixture(
-        even.weights * keep,
-        even.means,
-        even.covariances,
-        np.concatenate([even.box_weights * keep, own]),
-        np.concatenate([even.box_lows, mixture.box_lows[boxes:]]),
-        np.concatenate([even.box_highs, mixture.box_highs[boxes:]]),
-    )
+def uniform_weights_mixture(grounding: Grounding) -> GaussianMixture:
+    """The served mixture with uniform weights over the hypotheses' densities, its broad term kept:
+    with p(x) = (1 - beta) sum_h w_h p_h(x) + beta b(x), the answer is (1 - beta) sum_h p_h(x) / H +
+    beta b(x). Without densities (the broad prior) it is p itself."""
+    if not grounding.densities:
+        return grounding.mixture
+    even = GaussianMixture.combine(np.ones(len(grounding.densities)), grounding.densities)
+    if grounding.broad is None or grounding.background <= 0.0:
+        return even
+    beta = grounding.background
+    return GaussianMixture.combine([1.0 - beta, beta], [even, grounding.broad])
 
 
 def reliability_bins(
@@ -550,7 +531,7 @@ def _score_case(
             true_anchors = frozenset(truth.anchor_ids) if truth else None
             holds = [k for k, h in enumerate(grounded) if frozenset(h.anchor_ids) == true_anchors]
             matched = max(holds, key=lambda k: grounded[k].weight) if holds else None
-            uniform_weights_nll = mixture_nll(uniform_weights_mixture(mixture, densities), target)
+            uniform_weights_nll = mixture_nll(uniform_weights_mixture(grounding), target)
         guess = matched if given_truth else heaviest
         point = densities[guess].mean() if guess is not None else mixture.mean()
         if matched is not None:

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from app.grounding.hypotheses import Hypothesis
-from app.grounding.mixture import Gaussian, GaussianMixture
+from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, map_box
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, SceneObject
 
@@ -71,6 +71,8 @@ class GeometricGrounder:
         return [GaussianMixture.of(self.ground_one(scene_graph, h, floor_z)) for h in hypotheses]
 
     def ground_one(self, scene_graph: SceneGraph, hypothesis: Hypothesis, floor_z: float) -> Gaussian:
+        if not hypothesis.anchor_ids:
+            return region_gaussian(scene_graph, hypothesis.region_id)
         cfg = self.config
         anchors = [scene_graph.object(i) for i in hypothesis.anchor_ids]
         first = anchors[0]
@@ -144,6 +146,21 @@ class FixedGrounder:
     ) -> list[GaussianMixture]:
         out = []
         for h in hypotheses:
+            if not h.anchor_ids:
+                out.append(GaussianMixture.of(region_gaussian(scene_graph, h.region_id)))
+                continue
             centers = np.array([scene_graph.object(i).center for i in h.anchor_ids], dtype=np.float64)
             out.append(GaussianMixture.of(Gaussian(centers.mean(axis=0), np.eye(3) * self.sigma**2)))
         return out
+
+
+def region_gaussian(scene_graph: SceneGraph, region_id: str | None) -> Gaussian:
+    """A region hypothesis (no anchor object) for the hand-written grounders: the Gaussian with the moments
+    of the uniform density over the region's box, or the map's (`map_box`) when the region is unknown."""
+    region = next((r for r in scene_graph.regions if r.id == region_id), None)
+    if region is None:
+        box = map_box(scene_graph)
+    else:
+        half = 0.5 * np.asarray(region.size, dtype=np.float64)
+        box = UniformBox.around(np.asarray(region.center) - half, np.asarray(region.center) + half)
+    return Gaussian(box.center, box.covariance)

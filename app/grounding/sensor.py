@@ -6,16 +6,18 @@ misunderstood" term, a `Grounder` one density per hypothesis (a small Gaussian m
     p(x) = (1 - beta) sum_h w_h p_h(x) + beta_min U(x; map) + (beta - beta_min) B(x),
 
 with beta at least beta_min = `MIN_BACKGROUND_WEIGHT`, U the uniform density over the map's box (`map_box`),
-and B the broad density over what the utterance allows: the mentioned region(s), else the map with the areas
-a negation rules out carved away ("not on the table"), else the map. Since p(x) >= beta_min / vol(map box)
+and B the broad density over what the utterance allows: uniform over the mentioned region(s), else the map
+with the areas a negation rules out carved away ("not on the table"), else the map; a tenth of B lies on a
+wide Gaussian about the map, so places just outside the mapped objects' box keep some mass. Since
+p(x) >= beta_min / vol(map box)
 everywhere in the map, no input makes it worse than the uniform over the map by more than
 log(1 / beta_min) = 3.9 nats.
 
 Only the `max_grounded` heaviest hypotheses go through the grounder; the others keep their mass, merged per
 region into one broad Gaussian each (moment-matched over rough per-anchor Gaussians), so no reading a long
 list of look-alike anchors holds is dropped. A hypothesis with a spread c > 1 (a vague or view-dependent
-relation) has every covariance of its density multiplied by c. Caller-given hypotheses skip the proposer and
-keep beta at beta_min.
+relation) has every covariance of its density multiplied by c. Caller-given hypotheses skip the proposer:
+they are served as given, beta = 0 (a caller who names the reading has nothing to be misunderstood).
 
 When no hypothesis is left (nothing to read, a map without objects) the mixture is the broad prior alone.
 """
@@ -42,6 +44,8 @@ StageObserver = Callable[[str, float], None]
 DEFAULT_MAX_GROUNDED = 8
 # The rough per-anchor Gaussian of a merged hypothesis: sigma = half extent + this (metres) per axis.
 _MERGED_MARGIN = 0.5
+#: The broad density's share on a wide Gaussian about the map (beside its uniform boxes).
+WIDE_SHARE = 0.1
 
 
 @dataclass(frozen=True)
@@ -54,6 +58,7 @@ class Grounding:
     timings_ms: dict[str, float] = field(default_factory=dict)
     densities: tuple[GaussianMixture, ...] = ()  # P(x | h, map) of each served hypothesis, in order
     background: float = MIN_BACKGROUND_WEIGHT  # beta, the broad term's weight in `mixture`
+    broad: GaussianMixture | None = None  # the broad term, normalised: mixture = (1 - beta) sum + beta broad
 
     @property
     def grounded(self) -> bool:
@@ -99,9 +104,10 @@ class LanguageSensor:
     ) -> Grounding:
         """The served mixture of a proposal made already (the evaluation shares one among grounders)."""
         timings = {} if timings is None else timings
-        beta = max(MIN_BACKGROUND_WEIGHT, min(1.0, proposal.background))
+        beta = min(1.0, max(0.0, proposal.background))
         if not proposal.hypotheses or beta >= 1.0:
-            return Grounding(proposal, (), broad_prior(scene_graph, proposal.parse), timings, background=1.0)
+            prior = broad_prior(scene_graph, proposal.parse)
+            return Grounding(proposal, (), prior, timings, background=1.0, broad=prior)
         ranked = sorted(proposal.hypotheses, key=lambda h: -h.weight)
         grounded, rest = ranked[: self.max_grounded], ranked[self.max_grounded :]
         with self._stage("grounder", timings):
@@ -117,8 +123,11 @@ class LanguageSensor:
         weights /= weights.sum()
         mixture = GaussianMixture.combine(weights, densities)
         served_hypotheses = tuple(replace(h, weight=float(w)) for h, w in zip(served, weights, strict=True))
-        mixture = with_broad_term(mixture, beta, scene_graph, proposal)
-        return Grounding(proposal, served_hypotheses, mixture, timings, tuple(densities), beta)
+        if beta <= 0.0:
+            return Grounding(proposal, served_hypotheses, mixture, timings, tuple(densities), 0.0)
+        broad = broad_term(beta, scene_graph, proposal)
+        full = GaussianMixture.combine([1.0 - beta, beta], [mixture, broad])
+        return Grounding(proposal, served_hypotheses, full, timings, tuple(densities), beta, broad)
 
     def _stage(self, name: str, timings: dict[str, float]) -> _StageTimer:
         return _StageTimer(name, timings, self.observer)
@@ -144,7 +153,7 @@ class LanguageSensor:
             replace(h, region_id=h.region_id or scene_graph.object(h.anchor_ids[0]).region_id)
             for h in hypotheses
         )
-        return Proposal(parse, filled)
+        return Proposal(parse, filled, background=0.0)
 
 
 class _StageTimer:
@@ -206,31 +215,34 @@ def merged_tail(
     return out
 
 
-def with_broad_term(
-    mixture: GaussianMixture, beta: float, scene_graph: SceneGraph, proposal: Proposal
+def broad_term(beta: float, scene_graph: SceneGraph, proposal: Proposal) -> GaussianMixture:
+    """The broad term normalised, (beta_min U(map) + (beta - beta_min) B) / beta (module docstring)."""
+    floor = min(MIN_BACKGROUND_WEIGHT, beta)
+    uniform = GaussianMixture.from_components([], [], boxes=[map_box(scene_graph)], box_weights=[1.0])
+    broad = broad_density(scene_graph, proposal.parse, proposal.avoid)
+    return GaussianMixture.combine([floor, beta - floor], [uniform, broad])
+
+
+def broad_density(
+    scene_graph: SceneGraph, parse: UtteranceParse, avoid: Sequence[UniformBox] = ()
 ) -> GaussianMixture:
-    """(1 - beta) mixture + beta_min U(map) + (beta - beta_min) B (see the module docstring)."""
-    boxes, weights = broad_boxes(scene_graph, proposal.parse, proposal.avoid)
-    floor = MIN_BACKGROUND_WEIGHT
+    """The broad density B: uniform over what the utterance allows (`broad_boxes`), with a share
+    `WIDE_SHARE` on one wide Gaussian about the map (sigma = half the map box's side per axis), so that
+    places just outside the mapped objects' box (a partly explored map) keep some mass."""
+    boxes, weights = broad_boxes(scene_graph, parse, avoid)
     box = map_box(scene_graph)
-    keep = 1.0 - beta
-    extra = beta - floor
-    return GaussianMixture(
-        mixture.weights * keep,
-        mixture.means,
-        mixture.covariances,
-        np.concatenate([mixture.box_weights * keep, [floor], extra * weights]),
-        np.concatenate([mixture.box_lows, box.low[None], np.stack([b.low for b in boxes])]),
-        np.concatenate([mixture.box_highs, box.high[None], np.stack([b.high for b in boxes])]),
+    wide = Gaussian(box.center, np.diag((0.5 * box.size) ** 2))
+    return GaussianMixture.from_components(
+        [WIDE_SHARE], [wide], boxes=boxes, box_weights=(1.0 - WIDE_SHARE) * weights
     )
 
 
 def broad_boxes(
     scene_graph: SceneGraph, parse: UtteranceParse, avoid: Sequence[UniformBox] = ()
 ) -> tuple[list[UniformBox], np.ndarray]:
-    """The broad density B as uniform boxes with weights summing to one: the mentioned regions (equal
-    shares), else the map's box minus the `avoid` boxes (shares by volume, so B is uniform on what is
-    left), else the map's box."""
+    """The uniform part of B as boxes with weights summing to one: the mentioned regions (equal shares),
+    else the map's box minus the `avoid` boxes (shares by volume, so it is uniform on what is left), else
+    the map's box."""
     region_ids = regions_named(scene_graph, parse.region_phrase)
     if region_ids:
         boxes = [
@@ -272,11 +284,5 @@ def subtract(box: UniformBox, hole: UniformBox) -> list[UniformBox]:
 
 
 def broad_prior(scene_graph: SceneGraph, parse: UtteranceParse) -> GaussianMixture:
-    """The mixture when nothing can be grounded: U over the mentioned regions (equal weights), else the map,
-    always with beta_min U(map) (so the bound of the module docstring holds here too)."""
-    boxes, weights = broad_boxes(scene_graph, parse)
-    box = map_box(scene_graph)
-    floor = MIN_BACKGROUND_WEIGHT
-    return GaussianMixture.from_components(
-        [], [], boxes=[box, *boxes], box_weights=np.concatenate([[floor], (1.0 - floor) * weights])
-    )
+    """The mixture when nothing can be grounded: beta = 1, beta_min U(map) + (1 - beta_min) B."""
+    return broad_term(1.0, scene_graph, Proposal(parse, ()))

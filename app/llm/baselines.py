@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from app.errors import LLMResponseError
+from app.grounding.geometric import region_gaussian
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.mixture import Gaussian, GaussianMixture, project_to_pd
 from app.llm import prompts
@@ -120,7 +121,9 @@ class ScaffoldedLLMGrounder:
             GaussianMixture.of(
                 read_gaussian(
                     self.client.complete_json(prompts.scaffolded_messages(scene_graph, utterance, h))
-                ),
+                )
+                if h.anchor_ids
+                else region_gaussian(scene_graph, h.region_id),  # no anchor to ask about
                 BASELINE_MIN_EIGENVALUE_M2,
             )
             for h in hypotheses
@@ -163,6 +166,11 @@ class LLMEndToEndGrounder:
         mixture = self.ground_mixture(scene_graph, utterance)
         out = []
         for h in hypotheses:
+            if not h.anchor_ids:  # a region hypothesis: no anchor to match a component to
+                out.append(
+                    GaussianMixture.of(region_gaussian(scene_graph, h.region_id), BASELINE_MIN_EIGENVALUE_M2)
+                )
+                continue
             centroid = np.mean([scene_graph.object(i).center for i in h.anchor_ids], axis=0)  # (3,)
             nearest = int(np.argmin(np.linalg.norm(mixture.means - centroid, axis=1)))
             out.append(GaussianMixture.of(mixture.components[nearest], BASELINE_MIN_EIGENVALUE_M2))

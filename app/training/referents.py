@@ -43,7 +43,7 @@ from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis
 from app.grounding.interfaces import Grounder
 from app.grounding.mixture import map_box
 from app.grounding.relations import Relation
-from app.grounding.sensor import broad_boxes
+from app.grounding.sensor import broad_density
 from app.vocabulary import lemmas
 
 log = logging.getLogger("vlmap.proposer")
@@ -91,8 +91,7 @@ def prepare_case(
         density[h] = density_terms(d.weights, d.means, d.covariances, y)
     box = map_box(case.scene_graph)
     inside = bool(box.contains(y[None])[0])
-    boxes, weights = broad_boxes(case.scene_graph, parse, found.avoid)
-    broad = sum(w / b.volume for b, w in zip(boxes, weights, strict=True) if b.contains(y[None])[0])
+    log_broad = float(broad_density(case.scene_graph, parse, found.avoid).logpdf(y[None])[0])
     correct = None
     if case.hypotheses:
         truth = frozenset(case.hypotheses[0].anchor_ids)
@@ -107,7 +106,7 @@ def prepare_case(
         density=density,
         utterance_features=found.utterance_features,
         log_uniform=-math.log(box.volume) if inside else -math.inf,
-        log_broad=math.log(broad) if broad > 0 else -math.inf,
+        log_broad=log_broad,
         correct=correct,
     )
 
