@@ -50,8 +50,10 @@ axis-aligned box enclosing every object box of the case's scene graph, each side
 `uniform_nll` of a group is its mean over the cases with y in U, `uniform_outside` counts the others
 (better than the baseline whatever the method says, since U(y) = 0 there).
 
-With a proposer other than `gt`, the weights themselves are scored ("referent"), each hypothesis being
-correct when it holds the true anchors:
+With a proposer other than `gt`, the weights themselves are scored ("referent") as a distribution over
+referents: the weights of the hypotheses reading the same anchor set are summed (a "near" and a "closest"
+reading of one table are one referent), hypotheses with no anchor object (the target in a region) are left
+out, and a referent is correct when it is the true anchor set:
 
     top1_accuracy       = fraction of cases whose highest-weight hypothesis is correct
     true_hypothesis_nll = mean -log max(sum of the correct hypotheses' weights, 1e-6); cases with no correct
@@ -345,6 +347,23 @@ class ReferentScore:
         return len(self.weights) > 0 and bool(self.correct[int(np.argmax(self.weights))])
 
 
+def referent_score(bucket: str, hypotheses: Sequence[Hypothesis], truth: frozenset[str]) -> ReferentScore:
+    """The proposal as a distribution over anchor sets: P(anchors) = sum of the weights of the hypotheses
+    that read them (a "near" and a "closest" reading of one table are one referent); hypotheses with no
+    anchor object (the target in a region) name no referent and stay out."""
+    by_anchors: dict[frozenset[str], float] = {}
+    for h in hypotheses:
+        if h.anchor_ids:
+            key = frozenset(h.anchor_ids)
+            by_anchors[key] = by_anchors.get(key, 0.0) + h.weight
+    keys = list(by_anchors)
+    return ReferentScore(
+        bucket,
+        np.array([by_anchors[k] for k in keys], dtype=np.float64),
+        np.array([k == truth for k in keys], dtype=bool),
+    )
+
+
 def _mean_or_none(values: Sequence[float]) -> float | None:
     return float(np.mean(values)) if len(values) else None
 
@@ -626,11 +645,7 @@ def evaluate_static(
                 proposer_failures.add(case.case_id, exc)
             hypotheses = proposal.hypotheses if proposal is not None else ()
             if proposal is not None and true_anchors is not None:
-                weighed = ReferentScore(
-                    bucket,
-                    np.array([h.weight for h in hypotheses], dtype=np.float64),
-                    np.array([frozenset(h.anchor_ids) == true_anchors for h in hypotheses], dtype=bool),
-                )
+                weighed = referent_score(bucket, hypotheses, true_anchors)
                 referent.append(weighed)
                 row["referent"] = {
                     "top1": weighed.top1,

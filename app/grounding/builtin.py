@@ -117,8 +117,11 @@ BACKGROUND_FEATURES: tuple[str, ...] = (
     "log_words",
 )
 N_BACKGROUND = len(BACKGROUND_FEATURES)
-#: Spreads (covariance multipliers) a hypothesis may get: fitted for vague and view-dependent relations.
+#: Spreads (covariance multipliers) a hypothesis may get: fitted for vague and view-dependent relations, each
+#: at least its floor. A view-dependent word names one side of the anchor without saying whose left it is:
+#: the reading must cover every side, so it is never sharper than one and a half times "near".
 SPREADS = ("vague", "view")
+MIN_SPREADS = {"vague": 1.0, "view": 1.5}
 # Storey words of a region phrase, and the side of the map they pick.
 _STOREYS = {"upstairs": 1.0, "upper": 1.0, "downstairs": -1.0, "lower": -1.0, "ground": -1.0}
 # What a negated relation rules out around its anchor, metres: (grow xy, below, above) of the anchor's box.
@@ -148,7 +151,7 @@ class ProposerParams:
     background: np.ndarray  # (G,) on standardised background features
     background_mean: np.ndarray  # (G,)
     background_scale: np.ndarray  # (G,)
-    spreads: dict[str, float] = field(default_factory=lambda: dict.fromkeys(SPREADS, 1.0))
+    spreads: dict[str, float] = field(default_factory=lambda: dict(MIN_SPREADS))
     temperature: float = 1.0
     attribute_weight: float = 3.0  # a prior, not fitted: the training maps carry no attributes
     min_label_similarity: float = 0.7
@@ -768,7 +771,7 @@ class BuiltinProposer:
 
 
 def _spread(params: ProposerParams, name: str | None) -> float:
-    return 1.0 if name is None else params.spreads.get(name, 1.0)
+    return 1.0 if name is None else max(params.spreads.get(name, 1.0), MIN_SPREADS[name])
 
 
 def regions_for_phrase(scene_graph: SceneGraph, phrase: str | None) -> set[str] | None:

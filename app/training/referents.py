@@ -12,11 +12,12 @@ grounder's density p_h (a core and a tail Gaussian, N(mu, c Sigma) and N(mu, c S
 
 The anchor of a human description is latent: only the position enters. Built cases (templated statements
 whose true anchors are known) add the log-probability of their true hypotheses (weight gamma), which keeps
-the referent weights calibrated where a house has ten beds. The spreads c_vague, c_view = 1 + softplus(.)
-widen vague and view-dependent readings. Each p_h(y; c) comes in closed form from the grounder's density at
-c = 1: with m = NEES and l = log|Sigma| of each component, log N(y; mu, c Sigma) = -(l + 3 log c + m / c +
-3 log 2 pi) / 2. L-BFGS minimises L (torch autograd); lambda is chosen on a held-out part of the training
-scans, which then fits one temperature T of the hypothesis scores (pi = softmax(s / T)).
+the referent weights calibrated where a house has ten beds. The spreads c_k = floor_k + softplus(.) widen
+vague and view-dependent readings (floors `MIN_SPREADS`). Each p_h(y; c) comes in closed form from the
+grounder's density at c = 1: with m = NEES and l = log|Sigma| of each component,
+log N(y; mu, c Sigma) = -(l + 3 log c + m / c + 3 log 2 pi) / 2. L-BFGS minimises L (torch autograd);
+lambda is chosen on a held-out part of the training scans, which then fits one temperature T of the
+hypothesis scores (pi = softmax(s / T)).
 
 `vlmap fit-proposer` (below) reads the cases, writes `params.json` and a report.
 """
@@ -38,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from app.data.cases import GroundingCase, read_cases
-from app.grounding.builtin import REGION, SPREADS, BuiltinProposer, ProposerParams
+from app.grounding.builtin import MIN_SPREADS, REGION, SPREADS, BuiltinProposer, ProposerParams
 from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis
 from app.grounding.interfaces import Grounder
 from app.grounding.mixture import map_box
@@ -210,9 +211,10 @@ def _log_density(
         torch.sum(batch.features * params.weights[batch.keys], dim=1) + attribute_weight * batch.attribute
     ) / temperature
     log_pi = scores - _segment_logsumexp(scores, batch.row_case, batch.n_cases)[batch.row_case]
+    floors = torch.tensor([MIN_SPREADS[s] for s in SPREADS], dtype=scores.dtype)
     c = torch.ones_like(scores)
     has = batch.spreads >= 0
-    c = torch.where(has, 1.0 + F.softplus(params.spreads)[batch.spreads.clamp(min=0)], c)
+    c = torch.where(has, (floors + F.softplus(params.spreads))[batch.spreads.clamp(min=0)], c)
     log_c = torch.log(c)
     d = batch.density
     core = d[:, 0] - 0.5 * (d[:, 2] + 3 * log_c + d[:, 3] / c + 3 * _LOG_2PI)
@@ -358,7 +360,9 @@ def to_params(
         background=params.background.detach().numpy(),
         background_mean=g_mean,
         background_scale=g_scale,
-        spreads={s: float(1.0 + F.softplus(params.spreads[i].detach())) for i, s in enumerate(SPREADS)},
+        spreads={
+            s: float(MIN_SPREADS[s] + F.softplus(params.spreads[i].detach())) for i, s in enumerate(SPREADS)
+        },
         temperature=temperature,
         attribute_weight=template.attribute_weight,
         min_label_similarity=template.min_label_similarity,
