@@ -6,6 +6,7 @@ object metadata) with eight hand-written utterances, one per target removed from
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import zlib
 from pathlib import Path
@@ -32,6 +33,7 @@ from app.lsm.features import (
 )
 from app.lsm.grounder import DEFAULT_MODEL_DIR, LSMGrounder
 from app.lsm.model import (
+    RELATION_INDEX,
     ROLE_ANCHOR,
     ROLE_OTHER,
     LanguageSensorModel,
@@ -540,3 +542,68 @@ def test_percentile_equals_numpy(n):
     values = np.random.default_rng(n).normal(size=n)
     for q in (0.0, 10.0, 50.0, 97.5, 100.0):
         assert percentile(values, q) == pytest.approx(float(np.percentile(values, q)), rel=1e-12, abs=1e-12)
+
+
+def test_the_mean_of_in_lies_inside_the_anchors_box(packed):
+    """With contained_in, "in" means c + h tanh(.) over the anchor's box, whatever the head outputs."""
+    model = _tiny_model(seed=4)
+    with torch.no_grad():
+        model.head[-1].weight.normal_(0.0, 3.0)  # large outputs: tanh saturates at the box's faces
+        model.head[-1].bias.normal_(0.0, 3.0)
+    model.eval()
+    batch = dataclasses.replace(
+        packed.batch(), relation=torch.full((len(packed),), RELATION_INDEX[Relation.IN])
+    )
+    with torch.no_grad():
+        out = model(batch)
+    assert torch.all(out.mean >= batch.anchor_low - 1e-5) and torch.all(out.mean <= batch.anchor_high + 1e-5)
+    free = LanguageSensorModel(dataclasses.replace(model.cfg, contained_in=False))
+    free.load_state_dict(model.state_dict())
+    free.eval()
+    with torch.no_grad():
+        assert not torch.all(free(batch).mean <= batch.anchor_high + 1e-5)
+
+
+def test_on_labels_rest_on_plain_tops_but_not_inside_seats(cases):
+    from app.data.cases import CaseHypothesis
+    from app.lsm.train import resting_position
+
+    case = next(c for c in cases if c.hypotheses[0].relation is Relation.ON)
+    anchor = case.scene_graph.object(case.hypotheses[0].anchor_ids[0])
+    top = float(anchor.max_corner[2])
+    sunk = case.model_copy(
+        update={
+            "target": case.target.model_copy(update={"position": [*case.target.position[:2], top - 0.05]})
+        }
+    )
+    size_z = float(case.target.size[2])
+    plain = sunk.model_copy(
+        update={
+            "scene_graph": sunk.scene_graph.model_copy(
+                update={
+                    "objects": [
+                        o.model_copy(update={"label": "table"}) if o.id == anchor.id else o
+                        for o in sunk.scene_graph.objects
+                    ]
+                }
+            )
+        }
+    )
+    assert resting_position(plain)[2] == pytest.approx(top + 0.5 * size_z)
+    seat = plain.model_copy(
+        update={
+            "scene_graph": plain.scene_graph.model_copy(
+                update={
+                    "objects": [
+                        o.model_copy(update={"label": "sofa"}) if o.id == anchor.id else o
+                        for o in plain.scene_graph.objects
+                    ]
+                }
+            )
+        }
+    )
+    assert resting_position(seat)[2] == pytest.approx(top - 0.05)  # a seat holds things inside its box
+    near = plain.model_copy(
+        update={"hypotheses": [CaseHypothesis(anchor_ids=[anchor.id], relation=Relation.NEAR)]}
+    )
+    assert resting_position(near) == list(near.target.position)

@@ -25,15 +25,25 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="MODEL_DIR",
         help="skip training: evaluate the checkpoint in MODEL_DIR on the config's validation splits",
     )
+    parser.add_argument(
+        "--recalibrate",
+        type=Path,
+        default=None,
+        metavar="MODEL_DIR",
+        help="skip training: fit the calibration of the checkpoint in MODEL_DIR anew on the config's calib "
+        "split (its margin) and write the recalibrated checkpoint and its report to --out",
+    )
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from app.lsm.train import TrainConfig, evaluate_checkpoint, train, write_report
+    from app.lsm.train import TrainConfig, evaluate_checkpoint, recalibrate, train, write_report
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = TrainConfig.from_yaml(args.config)
-    if args.evaluate_only is None:
+    if args.recalibrate is not None:
+        recalibrate(args.recalibrate, config, args.out)
+    elif args.evaluate_only is None:
         train(config, args.out)
     else:
         args.out.mkdir(parents=True, exist_ok=True)

@@ -98,6 +98,8 @@ class Sample:
     relation: int  # RELATION_INDEX
     region_shift: np.ndarray  # (3,) t, local frame
     region_scale: np.ndarray  # (3,) s
+    anchor_low: np.ndarray  # (3,) corners of the anchors' joint box, local frame
+    anchor_high: np.ndarray  # (3,)
     floor_z: float  # local frame
     scene_low: np.ndarray  # (3,) corners of the scene's bounding box, local frame
     scene_high: np.ndarray  # (3,)
@@ -306,6 +308,8 @@ def make_sample(
         relation=RELATION_INDEX[Relation(relation)],
         region_shift=np.zeros(3, dtype=np.float32),
         region_scale=scale.astype(np.float32),
+        anchor_low=anchor_low.astype(np.float32),
+        anchor_high=anchor_high.astype(np.float32),
         floor_z=float(arrays.floor_z - origin[2]),
         scene_low=scene_low.astype(np.float32),
         scene_high=scene_high.astype(np.float32),
@@ -439,6 +443,8 @@ class PackedSamples:
         self.relation = torch.tensor([s.relation for s in samples])  # (S,)
         self.shift = torch.from_numpy(np.stack([s.region_shift for s in samples]))  # (S, 3)
         self.scale = torch.from_numpy(np.stack([s.region_scale for s in samples]))  # (S, 3)
+        self.anchor_low = torch.from_numpy(np.stack([s.anchor_low for s in samples]))  # (S, 3)
+        self.anchor_high = torch.from_numpy(np.stack([s.anchor_high for s in samples]))  # (S, 3)
         self.floor_z = torch.tensor([s.floor_z for s in samples], dtype=torch.float32)  # (S,)
         self.scene_low = torch.from_numpy(np.stack([s.scene_low for s in samples]))  # (S, 3)
         self.scene_high = torch.from_numpy(np.stack([s.scene_high for s in samples]))  # (S, 3)
@@ -467,6 +473,8 @@ class PackedSamples:
             relation=self.relation[index],
             region_shift=shift,
             region_scale=scale,
+            anchor_low=self.anchor_low[index],
+            anchor_high=self.anchor_high[index],
             region_cond=region_condition(
                 shift, scale, floor_z, self.scene_low[index], self.scene_high[index]
             ),

@@ -17,7 +17,8 @@ wider Gaussian about the same mean,
     p(y | h) = (1 - a) N(y; mu, Sigma) + a N(y; mu, Sigma + Delta),   Delta = D_w D_w^T,
 
 with D_w = diag(s) D (D lower-triangular, softplus diagonal) and a = a_max sigmoid(.) from 7 more head
-outputs (16 in all).
+outputs (16 in all). With `contained_in`, the mean of an "in" hypothesis is c + h tanh(.) for its anchor's box
+(centre c, half sides h): inside the container by construction.
 
 Loss (reference appendix, with the density above), lambda_1 = 1:
     L = -log p(y | h) + lambda_1 ||mu - y||_1,
@@ -74,6 +75,7 @@ class LSMConfig:
     l1_weight: float = 1.0
     tail: bool = True  # deviation: a wider Gaussian per hypothesis with a learned weight
     tail_max_weight: float = 0.5  # a < a_max: the core stays the heavier part
+    contained_in: bool = True  # deviation: the mean of "in" lies inside the anchor's box
     # Input features (they define the output frame, so they travel with the weights).
     max_objects: int = 150  # nearest to the anchor(s), anchors always kept
     region_margin_xy: float = 1.0  # s = reach of the anchors' joint box from t + margin (metres), per axis
@@ -109,6 +111,8 @@ class LSMBatch:
     relation: torch.Tensor  # (B,) long, RELATION_INDEX
     region_shift: torch.Tensor  # (B, 3) t, metres
     region_scale: torch.Tensor  # (B, 3) s, metres
+    anchor_low: torch.Tensor  # (B, 3) the anchors' joint box
+    anchor_high: torch.Tensor  # (B, 3)
     region_cond: torch.Tensor  # (B, C)
     target: torch.Tensor | None = None  # (B, 3) metres, for training and evaluation
 
@@ -266,7 +270,8 @@ class LanguageSensorModel(nn.Module):
         if self.relation_prior is not None:
             prior = self.relation_prior(batch.region_cond).view(bsz, cfg.n_relations, cfg.n_outputs)
             out = out + prior[torch.arange(bsz), batch.relation]  # (B, O)
-        return decode_head(out, batch.region_shift, batch.region_scale, cfg)
+        inside = contained_rows(batch.relation, batch.anchor_low, batch.anchor_high, cfg)
+        return decode_head(out, batch.region_shift, batch.region_scale, cfg, inside)
 
     def loss(self, output: LSMOutput, target: torch.Tensor) -> torch.Tensor:
         """Mean over the batch of the density's NLL (nats) + l1_weight * ||mu - y||_1."""
@@ -281,16 +286,39 @@ def _lower(diag: torch.Tensor, off: torch.Tensor) -> torch.Tensor:
     ).view(-1, 3, 3)
 
 
-def decode_head(out: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor, cfg: LSMConfig) -> LSMOutput:
-    """The head's outputs (B, O) as the density: mu = s tanh(.) + t, L_w = diag(s) L, and the tail."""
-    mean = torch.tanh(out[:, :3])  # (B, 3) region frame
+def contained_rows(
+    relation: torch.Tensor, low: torch.Tensor, high: torch.Tensor, cfg: LSMConfig
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """(rows of "in", the anchors' box centre, half sides) when `cfg.contained_in`, else None."""
+    if not cfg.contained_in:
+        return None
+    return relation == RELATION_INDEX[Relation.IN], 0.5 * (low + high), 0.5 * (high - low)
+
+
+def decode_head(
+    out: torch.Tensor,
+    shift: torch.Tensor,
+    scale: torch.Tensor,
+    cfg: LSMConfig,
+    inside: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+) -> LSMOutput:
+    """The head's outputs (B, O) as the density: mu = s tanh(.) + t, L_w = diag(s) L, and the tail.
+
+    With `inside` (the rows of "in", their anchors' box centre c and half sides h), those rows' mean is
+    c + h tanh(.): a target in a container is inside its box, by construction.
+    """
+    squashed = torch.tanh(out[:, :3])  # (B, 3) region frame
     chol = _lower(F.softplus(out[:, 3:6]) + cfg.sigma_floor, out[:, 6:9])  # (B, 3, 3)
     s, t = scale, shift  # (B, 3) each
+    mean = s * squashed + t
+    if inside is not None:
+        rows, centre, half = inside
+        mean = torch.where(rows[:, None], centre + half * squashed, mean)
     tail_chol = tail_weight = None
     if cfg.tail:
         tail_chol = s[:, :, None] * _lower(F.softplus(out[:, 9:12]) + cfg.sigma_floor, out[:, 12:15])
         tail_weight = cfg.tail_max_weight * torch.sigmoid(out[:, 15])  # (B,)
-    return LSMOutput(s * mean + t, s[:, :, None] * chol, tail_chol, tail_weight)
+    return LSMOutput(mean, s[:, :, None] * chol, tail_chol, tail_weight)
 
 
 def density_nll(output: LSMOutput, target: torch.Tensor) -> torch.Tensor:
@@ -337,8 +365,9 @@ def load_checkpoint(directory: Path) -> tuple[LanguageSensorModel, dict[str, Any
 
     directory = Path(directory)
     meta = json.loads((directory / CONFIG_NAME).read_text(encoding="utf-8"))
-    # A checkpoint's config lists every field; one without "tail" predates the tail (one Gaussian).
-    model = LanguageSensorModel(LSMConfig.from_dict({"tail": False} | meta["model"]))
+    # A checkpoint's config lists every field; one without "tail" predates the tail (one Gaussian), one
+    # without "contained_in" the box constraint of "in".
+    model = LanguageSensorModel(LSMConfig.from_dict({"tail": False, "contained_in": False} | meta["model"]))
     model.load_state_dict(load_file(str(directory / WEIGHTS_NAME)), strict=True)
     model.eval()
     return model, meta

@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from app.data.cases import GroundingCase, read_cases
+from app.data.relations import internal_support_reach
 from app.evaluation.metrics import gaussian_nll, nees
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.interfaces import Grounder
@@ -69,6 +70,7 @@ class DataConfig:
     reports: dict[str, str] = field(default_factory=dict)  # more report-only case files, by name
     exclude_sources: list[str] = field(default_factory=list)  # left out of train, calib and val_seen
     region_rate: float = 0.25  # share of cases that also give a region sample
+    resting_on: bool = True  # train "on" targets resting on a plain top (see resting_position)
     max_train_cases: int | None = None  # first N cases of the train file (for quick runs)
     embedding_cache: str | None = None  # .npz; default <out>/embeddings.npz
 
@@ -96,6 +98,7 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     version: str = "dev"
     calibration_prior_cases: float = 50.0  # see fit_calibration
+    calibration_margin: float = 1.0  # every fitted scale times this (see fit_calibration)
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> TrainConfig:
@@ -117,6 +120,7 @@ class TrainConfig:
             optim=OptimConfig(**values.get("optim", {})),
             version=str(values.get("version", "dev")),
             calibration_prior_cases=float(values.get("calibration_prior_cases", 50.0)),
+            calibration_margin=float(values.get("calibration_margin", 1.0)),
         )
 
     @classmethod
@@ -163,6 +167,28 @@ def map_log_volume(case: GroundingCase) -> float:
     return math.log(UniformBox.around(low, high).volume)
 
 
+def resting_position(case: GroundingCase) -> list[float]:
+    """The training label of an "on" case on a plain top (not a seat or a shelf, which hold things inside
+    their box): the target rests on the anchor, centre z >= top + half its height. Scanned boxes of things on
+    furniture often start inside it (a keyboard's box 5 cm into the desk), which taught "on" to sit at the
+    top surface rather than on it; every other label is the case's own."""
+    position = list(case.target.position)
+    truth = case.hypotheses[0] if case.hypotheses else None
+    if (
+        truth is None
+        or truth.relation is not Relation.ON
+        or len(truth.anchor_ids) != 1
+        or case.target.size is None
+    ):
+        return position
+    anchor = case.scene_graph.object(truth.anchor_ids[0])
+    if internal_support_reach(anchor.label) > 0:
+        return position
+    resting = float(anchor.max_corner[2]) + 0.5 * float(case.target.size[2])
+    position[2] = max(position[2], resting)
+    return position
+
+
 def _takes_region(case_id: str, rate: float) -> bool:
     """Whether a case also gives a region sample: a fixed pseudo-random share `rate` of the case ids."""
     return rate > 0 and zlib.crc32(case_id.encode()) / 2**32 < rate
@@ -176,10 +202,12 @@ def load_split(
     keep_cases: bool = False,
     exclude_sources: tuple[str, ...] = (),
     region_rate: float = 0.0,
+    resting_on: bool = False,
 ) -> Split:
     """Cases with a ground-truth hypothesis whose anchors exist -> samples; the others count as skipped.
 
-    The text of each sample is `hypothesis_text` of the target's name as the utterance says it.
+    The text of each sample is `hypothesis_text` of the target's name as the utterance says it; with
+    `resting_on`, "on" labels rest on plain tops (`resting_position`).
     """
     samples: list[Sample] = []
     groups: list[str] = []
@@ -199,7 +227,7 @@ def load_split(
         regions = tuple(r.name.lower() for r in case.scene_graph.regions if r.name)
         target = target_noun(case.utterance, regions) or case.target.label
         volume = map_log_volume(case)
-        position = case.target.position
+        position = resting_position(case) if resting_on else case.target.position
         samples.append(make_sample(case.scene_graph, truth.anchor_ids, truth.relation, target, cfg, position))
         groups.append(truth.relation.value)
         sources.append(source)
@@ -360,11 +388,17 @@ def summarize(
 
 
 def fit_calibration(
-    densities: Densities, targets: np.ndarray, groups: list[str], prior_cases: float = 50.0
+    densities: Densities,
+    targets: np.ndarray,
+    groups: list[str],
+    prior_cases: float = 50.0,
+    margin: float = 1.0,
 ) -> dict[str, Any]:
     """Covariance scales c_k per group k: the NLL-minimising scale of every covariance of the group's
     densities, shrunk towards the pooled one, log c_k = (n_k log c^_k + K log c^) / (n_k + K), K =
-    `prior_cases`, so that a group with few calibration cases does not get a noisy scale."""
+    `prior_cases`, so that a group with few calibration cases does not get a noisy scale; then times
+    `margin`, for data further from training than the calibration split (the model card says how it was
+    chosen)."""
     names = np.asarray(groups)
     pooled = _nll_optimal_scale(densities, targets)
     per_group, counts = {}, {}
@@ -545,7 +579,9 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
 
     calib = splits["calib"]
     densities = predict(model, packed["calib"], calib.samples, opt.eval_batch_size)
-    calibration = fit_calibration(densities, calib.targets, calib.groups, config.calibration_prior_cases)
+    calibration = fit_calibration(
+        densities, calib.targets, calib.groups, config.calibration_prior_cases, config.calibration_margin
+    )
     training = {
         "data": {n: {"samples": len(s.samples), "skipped_cases": s.skipped} for n, s in splits.items()},
         "files": asdict(config.data),
@@ -571,6 +607,31 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
     report = evaluate_checkpoint(out_dir, config, splits=splits, packed=packed)
     report["training"] = training
     write_report(report, out_dir)
+    return report
+
+
+def recalibrate(model_dir: Path, config: TrainConfig, out_dir: Path) -> dict[str, Any]:
+    """The checkpoint in `model_dir` with its calibration fitted anew on the config's calib split (its
+    margin and prior), written to `out_dir` with its report: what a change of the calibration costs without
+    training again."""
+    model, meta = load_checkpoint(Path(model_dir))
+    splits = _load_splits(config, include_train=False)
+    cache = _embedding_cache(config, Path(out_dir))
+    packed = {name: PackedSamples(split.samples, cache) for name, split in splits.items()}
+    cache.save()
+    calib = splits["calib"]
+    densities = predict(model, packed["calib"], calib.samples, config.optim.eval_batch_size)
+    calibration = fit_calibration(
+        densities, calib.targets, calib.groups, config.calibration_prior_cases, config.calibration_margin
+    )
+    extra = {k: v for k, v in meta.items() if k != "model"} | {
+        "calibration": calibration,
+        "version": config.version,
+    }
+    save_checkpoint(model, Path(out_dir), extra=extra)
+    report = evaluate_checkpoint(Path(out_dir), config, splits=splits, packed=packed)
+    report["training"] = meta.get("training")
+    write_report(report, Path(out_dir))
     return report
 
 
@@ -733,6 +794,7 @@ __all__ = [
     "fit_calibration",
     "load_split",
     "predict",
+    "recalibrate",
     "train",
     "write_report",
 ]
