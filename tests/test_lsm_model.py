@@ -607,3 +607,15 @@ def test_on_labels_rest_on_plain_tops_but_not_inside_seats(cases):
         update={"hypotheses": [CaseHypothesis(anchor_ids=[anchor.id], relation=Relation.NEAR)]}
     )
     assert resting_position(near) == list(near.target.position)
+
+
+def test_the_calibration_margin_multiplies_every_scale():
+    rng = np.random.default_rng(3)
+    targets = rng.normal(size=(500, 3))
+    covs = np.tile(np.eye(3), (500, 1, 1))
+    relations = ["near"] * 250 + ["on"] * 250
+    plain = fit_calibration(_gaussians(np.zeros((500, 3)), covs), targets, relations)
+    wider = fit_calibration(_gaussians(np.zeros((500, 3)), covs), targets, relations, margin=1.25)
+    assert wider["margin"] == 1.25 and wider["overall"] == pytest.approx(1.25 * plain["overall"])
+    for relation in ("near", "on"):
+        assert wider["per_relation"][relation] == pytest.approx(1.25 * plain["per_relation"][relation])

@@ -407,14 +407,14 @@ def fit_calibration(
         own = _nll_optimal_scale(densities.take(mask), targets[mask])
         n = int(mask.sum())
         counts[g] = n
-        per_group[g] = float(
-            math.exp((n * math.log(own) + prior_cases * math.log(pooled)) / (n + prior_cases))
-        )
+        shrunk = math.exp((n * math.log(own) + prior_cases * math.log(pooled)) / (n + prior_cases))
+        per_group[g] = float(margin * shrunk)
     return {
         "method": "covariance scale per relation (and for region hypotheses): the NLL-optimal scale on the "
-        "calibration split, shrunk to the pooled one in log space",
+        "calibration split, shrunk to the pooled one in log space, times the margin",
         "prior_cases": prior_cases,
-        "overall": pooled,
+        "margin": margin,
+        "overall": margin * pooled,
         "per_relation": per_group,
         "cases": counts,
     }
