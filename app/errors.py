@@ -8,11 +8,13 @@ class VLMapError(Exception):
 
 
 class InvalidInput(VLMapError):
-    """A request or file is malformed; `field` names the offending location (dotted path)."""
+    """A request or file is malformed; `field` names the offending location (dotted path), `details` lists
+    the individual errors when a validator found several."""
 
-    def __init__(self, message: str, field: str | None = None) -> None:
+    def __init__(self, message: str, field: str | None = None, details: list[dict] | None = None) -> None:
         super().__init__(message)
         self.field = field
+        self.details = details or []
 
     def __str__(self) -> str:
         base = super().__str__()
@@ -24,11 +26,13 @@ class InvalidSceneGraph(InvalidInput):
 
 
 class LimitExceeded(VLMapError):
-    """A configured limit (objects per scene graph, voxels per batch, ...) was exceeded."""
+    """A configured limit (objects per scene graph, voxels per batch, ...) was exceeded; `retry_after_s`,
+    when set, says when trying again may succeed (a rate or a busy resource)."""
 
-    def __init__(self, message: str, limit_name: str) -> None:
+    def __init__(self, message: str, limit_name: str, retry_after_s: float | None = None) -> None:
         super().__init__(message)
         self.limit_name = limit_name
+        self.retry_after_s = retry_after_s
 
 
 class NotFound(VLMapError):
@@ -60,6 +64,20 @@ class Unauthenticated(VLMapError):
 
 class Forbidden(VLMapError):
     """The API key is valid but its role or robot ids do not cover this operation."""
+
+
+class IdempotencyKeyReused(InvalidInput):
+    """An Idempotency-Key came back with another request than the one it was first used with."""
+
+
+class AlreadyApplied(VLMapError):
+    """The update carried an Idempotency-Key that its session has seen: nothing was changed, and `record`
+    (an `app.stores.base.IdempotencyRecord`) says what the first request with that key did. The API answers
+    it by repeating that answer (or a 422 when the request differs); it never reaches a client as such."""
+
+    def __init__(self, record: object) -> None:
+        super().__init__("this Idempotency-Key was seen before")
+        self.record = record
 
 
 class Conflict(VLMapError):

@@ -9,6 +9,8 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from app.scene_graph.model import MAX_OBJECTS_CEILING, MAX_REGIONS_CEILING
+
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -43,7 +45,10 @@ class Settings(BaseSettings):
         default=16 * 2**20, ge=1024, description="Largest request body accepted (413 above)."
     )
     max_objects: int = Field(
-        default=2000, ge=1, description="Objects allowed in one scene graph (422 above)."
+        default=2000,
+        ge=1,
+        le=MAX_OBJECTS_CEILING,
+        description="Objects allowed in one scene graph (422 above).",
     )
     max_hypotheses: int = Field(
         default=5, ge=1, le=5, description="Readings the LLM and lexical proposers keep per utterance."
@@ -91,6 +96,63 @@ class Settings(BaseSettings):
         default=16_000_000, ge=1, description="Voxels per session grid (memory guard)."
     )
     max_batch_voxels: int = Field(default=2_000_000, ge=1, description="Voxels per observation batch.")
+    max_regions: int = Field(
+        default=500,
+        ge=1,
+        le=MAX_REGIONS_CEILING,
+        description="Regions allowed in one scene graph (422 above).",
+    )
+    max_coordinate_m: float = Field(
+        default=1e5,
+        gt=0,
+        le=1e9,
+        description="Largest |coordinate| and size (metres) of a scene graph, grid corner or query point "
+        "(422 above): a map spans metres to kilometres, and squares of larger numbers overflow.",
+    )
+    max_place_voxels: int = Field(
+        default=32_000_000,
+        ge=1,
+        description="Voxels of a session's places (each object's box with the 'on' margin, each region) "
+        "summed over its scene graph, on its grid (422 above): every summary sums the belief over them.",
+    )
+    max_label_map_entries: int = Field(
+        default=4096, ge=1, description="Entries of a session's label_map (422 above)."
+    )
+    max_validation_errors: int = Field(
+        default=20,
+        ge=1,
+        le=1000,
+        description="Validation errors listed in a 422 answer (its message says how many there were).",
+    )
+    max_concurrent_decodes: int = Field(
+        default=1,
+        ge=1,
+        description="Spark-DSG binary decodes (each a child process) running at once in a process.",
+    )
+    decode_rate_per_s: float = Field(
+        default=1.0, ge=0, description="Spark-DSG binary decodes per second per key (0: no limit)."
+    )
+    decode_rate_burst: float = Field(default=4.0, ge=1, description="Burst allowance of the decode rate.")
+    max_concurrent_grids: int = Field(
+        default=2,
+        ge=1,
+        description="Whole-grid belief downloads (format=grid) being encoded at once in a process.",
+    )
+    busy_wait_s: float = Field(
+        default=2.0,
+        ge=0,
+        description="How long a decode or grid download waits for a free slot before a 429 with Retry-After.",
+    )
+    idempotency_window_s: float = Field(
+        default=3600.0,
+        gt=0,
+        description="How long a session remembers an Idempotency-Key and the answer it was given.",
+    )
+    idempotency_keys_per_session: int = Field(
+        default=1000,
+        ge=1,
+        description="Idempotency-Keys a session remembers at most (the oldest are forgotten first).",
+    )
 
     api_keys_file: Path | None = Field(
         default=None,
@@ -104,6 +166,21 @@ class Settings(BaseSettings):
     )
     rate_limit_per_s: float = Field(default=200.0, ge=0, description="Requests per second per key (0: off).")
     rate_limit_burst: float = Field(default=400.0, ge=1, description="Burst allowance of the per-key rate.")
+    max_connections: int = Field(
+        default=1000,
+        ge=1,
+        description="Open connections and requests in flight per process; beyond it new ones get a 503.",
+    )
+    header_timeout_s: float = Field(
+        default=10.0, gt=0, description="A request's line and headers must arrive within this time."
+    )
+    max_header_bytes: int = Field(
+        default=32 * 1024, ge=1024, description="Request line and headers, in bytes (431 above)."
+    )
+    body_timeout_s: float = Field(
+        default=30.0, gt=0, description="A request's body must arrive within this time (408 after)."
+    )
+    keep_alive_s: int = Field(default=5, ge=1, description="Idle time before a keep-alive connection closes.")
 
     log_level: str = "INFO"
     log_json: bool = Field(default=True, description="One JSON object per log line (false: plain text).")

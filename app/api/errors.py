@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import logging
+import math
+from collections.abc import Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
-from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
@@ -17,6 +18,7 @@ from app.api.observability import request_id_var
 from app.errors import (
     Conflict,
     Forbidden,
+    IdempotencyKeyReused,
     InvalidInput,
     LimitExceeded,
     ModelUnavailable,
@@ -28,8 +30,18 @@ from app.errors import (
 
 log = logging.getLogger("vlmap.api")
 
-# Limits whose breach is not a malformed body but a too-large one or too many requests.
-_LIMIT_STATUS = {"max_body_bytes": 413, "rate_limit": 429, "max_sessions_per_robot": 429}
+# Limits whose breach is not a malformed body but a too-large or too-slow one, or too many requests.
+_LIMIT_STATUS = {
+    "max_body_bytes": 413,
+    "body_timeout_s": 408,
+    "rate_limit": 429,
+    "decode_rate": 429,
+    "max_sessions_per_robot": 429,
+    "max_concurrent_decodes": 429,
+    "max_concurrent_grids": 429,
+}
+#: Characters of a validation message or context value kept in a 422 answer (inputs can be huge).
+_DETAIL_CHARS = 200
 # Tags of discriminated unions that pydantic puts in error locations; they are not field names.
 _UNION_TAGS = frozenset({"native", "other"})
 
@@ -54,11 +66,12 @@ def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
         401: "Missing or invalid API key",
         403: "Outside the key's scope",
         404: "Not found",
+        408: "The request body did not arrive in time",
         409: "Conflict",
         413: "Request too large",
         415: "Unsupported media type",
         422: "Invalid input; the message names the field",
-        429: "Too many requests",
+        429: "Too many requests, or the resource is busy; Retry-After says when to try again",
         503: "Temporarily unavailable",
     }
     return {s: {"model": ErrorResponse, "description": text.get(s, "Error")} for s in statuses}
@@ -80,15 +93,40 @@ def field_path(loc: tuple[Any, ...] | list[Any]) -> str:
     return ".".join(parts)
 
 
+def _short(value: Any) -> Any:
+    text = value if isinstance(value, str) else repr(value)
+    return text if len(text) <= _DETAIL_CHARS else text[: _DETAIL_CHARS - 3] + "..."
+
+
+def summarise_errors(
+    errors: Sequence[dict[str, Any]], total: int, limit: int
+) -> tuple[str, str | None, list[dict[str, Any]]]:
+    """(message, field, listed errors) for a 422: the first `limit` errors, each without its input and with
+    its message and context values cut short, and a message naming the first and how many there were."""
+    listed = []
+    for error in errors[:limit]:
+        entry: dict[str, Any] = {
+            "type": str(error.get("type", "invalid")),
+            "loc": [p if isinstance(p, int) else _short(str(p)) for p in error.get("loc", ())],
+            "msg": _short(str(error.get("msg", "invalid value"))),
+        }
+        if error.get("ctx"):
+            entry["ctx"] = {str(k): _short(v) for k, v in list(error["ctx"].items())[:8]}
+        listed.append(entry)
+    first = listed[0] if listed else {"loc": [], "msg": "invalid request"}
+    field = field_path(tuple(first["loc"])) or None
+    message = f"{field}: {first['msg']}" if field else str(first["msg"])
+    if total > 1:
+        message += f" (and {total - 1} more errors; {len(listed)} listed)"
+    return message, field, listed
+
+
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    errors = jsonable_encoder(exc.errors(), custom_encoder={BaseException: str})
-    for e in errors:
-        e.pop("input", None)  # echoing a whole scene graph back helps nobody
-        e.pop("url", None)
-    first = errors[0] if errors else {"loc": (), "msg": "invalid request"}
-    field = field_path(tuple(first.get("loc", ())))
-    message = f"{field}: {first.get('msg')}" if field else str(first.get("msg"))
-    return JSONResponse(status_code=422, content=error_body("invalid_input", message, field or None, errors))
+    # Path, query and header parameters only (bodies are read by app.api.bodies): a few errors at most.
+    limit = request.app.state.services.settings.max_validation_errors
+    errors = list(exc.errors())
+    message, field, listed = summarise_errors(errors, len(errors), limit)
+    return JSONResponse(status_code=422, content=error_body("invalid_input", message, field, listed))
 
 
 async def _domain_error(request: Request, exc: VLMapError) -> JSONResponse:
@@ -101,12 +139,20 @@ async def _domain_error(request: Request, exc: VLMapError) -> JSONResponse:
         return JSONResponse(
             status_code=415, content=error_body("unsupported_media_type", str(exc), exc.field)
         )
+    if isinstance(exc, IdempotencyKeyReused):
+        return JSONResponse(
+            status_code=422, content=error_body("idempotency_key_reused", str(exc), exc.field)
+        )
     if isinstance(exc, InvalidInput):
-        return JSONResponse(status_code=422, content=error_body("invalid_input", str(exc), exc.field))
+        body = error_body("invalid_input", str(exc), exc.field, exc.details)
+        return JSONResponse(status_code=422, content=body)
     if isinstance(exc, LimitExceeded):
         status = _LIMIT_STATUS.get(exc.limit_name, 422)
+        retry = {}
+        if exc.retry_after_s is not None:
+            retry["Retry-After"] = str(max(1, math.ceil(exc.retry_after_s)))
         return JSONResponse(
-            status_code=status, content=error_body("limit_exceeded", str(exc), exc.limit_name)
+            status_code=status, content=error_body("limit_exceeded", str(exc), exc.limit_name), headers=retry
         )
     if isinstance(exc, Conflict):
         return JSONResponse(status_code=409, content=error_body("conflict", str(exc)))
@@ -141,13 +187,8 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
     )
 
 
-async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
-    log.error("unhandled error", exc_info=exc)
-    return JSONResponse(status_code=500, content=error_body("internal_error", "internal error"))
-
-
 def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, _validation_error)  # type: ignore[arg-type]
     app.add_exception_handler(VLMapError, _domain_error)  # type: ignore[arg-type]
     app.add_exception_handler(StarletteHTTPException, _http_error)  # type: ignore[arg-type]
-    app.add_exception_handler(Exception, _unexpected_error)
+    # Anything else is answered by `RequestContextMiddleware`, inside the request's context (its id).

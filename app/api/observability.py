@@ -15,9 +15,15 @@ import uuid
 from typing import Any
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 request_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar("request_id", default=None)
+
+#: The status recorded (never sent) for a request whose client hung up before its answer: nginx's 499.
+CLIENT_CLOSED_REQUEST = 499
+#: Characters of one log field kept (a message or traceback quoting a hostile input could be megabytes).
+_LOG_FIELD_CHARS = 8192
 
 _LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 
@@ -62,8 +68,13 @@ class Metrics:
         self.inference.labels(stage=stage).observe(seconds)
 
 
+def _cut(text: str) -> str:
+    return text if len(text) <= _LOG_FIELD_CHARS else text[:_LOG_FIELD_CHARS] + f"... [{len(text)} chars]"
+
+
 class JsonFormatter(logging.Formatter):
-    """One JSON object per line with time, level, logger, message, request id and any `extra` fields."""
+    """One JSON object per line with time, level, logger, message, request id and any `extra` fields, each
+    cut to a bounded length."""
 
     _RESERVED = frozenset(logging.LogRecord("", 0, "", 0, "", None, None).__dict__) | {"message", "asctime"}
 
@@ -72,15 +83,16 @@ class JsonFormatter(logging.Formatter):
             "time": self.formatTime(record, "%Y-%m-%dT%H:%M:%S%z"),
             "level": record.levelname,
             "logger": record.name,
-            "message": record.getMessage(),
+            "message": _cut(record.getMessage()),
         }
         request_id = request_id_var.get()
         if request_id:
             payload["request_id"] = request_id
-        payload.update({k: v for k, v in record.__dict__.items() if k not in self._RESERVED})
+        extra = {k: v for k, v in record.__dict__.items() if k not in self._RESERVED}
+        payload.update({k: _cut(v) if isinstance(v, str) else v for k, v in extra.items()})
         if record.exc_info:
-            payload["exc_info"] = self.formatException(record.exc_info)
-        return json.dumps(payload, default=str)
+            payload["exc_info"] = _cut(self.formatException(record.exc_info))
+        return json.dumps(payload, default=lambda value: _cut(str(value)))
 
 
 def configure_logging(level: str = "INFO", json_lines: bool = True) -> None:
@@ -102,7 +114,12 @@ access_log = logging.getLogger("vlmap.access")
 
 
 class RequestContextMiddleware:
-    """Accepts or creates `X-Request-ID`, echoes it, counts and times every request, logs one access line."""
+    """Accepts or creates `X-Request-ID`, echoes it, counts and times every request, logs one access line.
+
+    The outermost layer, so it also answers what nothing inside handled: an unexpected exception is a 500
+    `ErrorResponse` carrying the request id; a client that hung up (a body read found it gone) gets nothing
+    and is counted and logged as 499, not as a server error.
+    """
 
     def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
         self.app = app
@@ -116,12 +133,13 @@ class RequestContextMiddleware:
         request_id = incoming if 0 < len(incoming) <= 128 and incoming.isprintable() else uuid.uuid4().hex
         token = request_id_var.set(request_id)
         status = 500
+        started = False
         start = time.perf_counter()
 
         async def send_with_id(message: Message) -> None:
-            nonlocal status
+            nonlocal status, started
             if message["type"] == "http.response.start":
-                status = message["status"]
+                status, started = message["status"], True
                 message["headers"] = [
                     *message.get("headers", []),
                     (b"x-request-id", request_id.encode("latin-1")),
@@ -131,6 +149,13 @@ class RequestContextMiddleware:
         self.metrics.in_flight.inc()
         try:
             await self.app(scope, receive, send_with_id)
+        except ClientDisconnect:
+            status = CLIENT_CLOSED_REQUEST
+            access_log.info("client disconnected before the answer", extra={"path": scope["path"]})
+        except Exception as exc:
+            access_log.error("unhandled error", exc_info=exc)
+            if not started:
+                await self._internal_error(send_with_id)
         finally:
             self.metrics.in_flight.dec()
             elapsed = time.perf_counter() - start
@@ -146,3 +171,13 @@ class RequestContextMiddleware:
                 extra={"route": route, "status": status, "duration_ms": round(elapsed * 1000, 3)},
             )
             request_id_var.reset(token)
+
+    @staticmethod
+    async def _internal_error(send: Send) -> None:
+        from starlette.responses import JSONResponse
+
+        from app.api.errors import error_body  # app.api.errors imports this module for the request id
+
+        response = JSONResponse(error_body("internal_error", "internal error"), status_code=500)
+        await send({"type": "http.response.start", "status": 500, "headers": response.raw_headers})
+        await send({"type": "http.response.body", "body": response.body})

@@ -4,11 +4,19 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Strict, Tag
 from pydantic.config import JsonDict
 
 from app.grounding.relations import Relation
-from app.scene_graph.model import SceneGraph, Vec3
+from app.scene_graph.model import Id, SceneGraph, Vec3
+
+#: Ceilings of the request lists that the service's configurable limits (`app.settings`) lie below: the
+#: validator refuses a longer list before reading its items (`app.api.bodies`).
+MAX_QUERY_POINTS_CEILING = 100_000
+MAX_BATCH_CEILING = 4_000_000
+MAX_LABEL_MAP_CEILING = 65_536
+#: Characters of a class name, in a label map or an observation batch (JSON or msgpack).
+MAX_LABEL_CHARS = 256
 
 
 def _scene_graph_kind(value: Any) -> str:
@@ -37,7 +45,7 @@ class HypothesisIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    anchor_ids: list[str] = Field(min_length=1, max_length=2)
+    anchor_ids: list[Id] = Field(min_length=1, max_length=2)
     relation: Relation
     weight: float = Field(default=1.0, gt=0, allow_inf_nan=False)
 
@@ -64,7 +72,10 @@ class GroundRequest(BaseModel):
     utterance: str = Field(min_length=1, max_length=1000, examples=["I left my backpack on the table"])
     options: GroundOptions | None = None
     query_points: list[Vec3] | None = Field(
-        default=None, description="Points (m) at which to return the mixture's log-density."
+        default=None,
+        max_length=MAX_QUERY_POINTS_CEILING,
+        fail_fast=True,
+        description="Points (m) at which to return the mixture's log-density.",
     )
 
 
@@ -204,7 +215,9 @@ RobotId = Annotated[str, Field(min_length=1, max_length=128, pattern=ROBOT_ID_PA
 class PackedArray(BaseModel):
     """A numpy array on the msgpack wire: dtype (e.g. "<i4"), shape and the raw little-endian bytes."""
 
-    dtype: Literal["<i4", "<i8", "<f4", "<f8", "<u4", "<u2", "<u1"]
+    dtype: Literal["<i4", "<i8", "<f4", "<f8", "<u4", "<u2", "<u1", "|u1"] = Field(
+        description='numpy\'s dtype.str; "|u1" and "<u1" both name uint8.'
+    )
     shape: list[Annotated[int, Field(ge=0)]]
     data: bytes
 
@@ -231,6 +244,11 @@ class SensorModelIn(BaseModel):
     fp: float = Field(default=0.05, gt=0.0, lt=1.0)
 
 
+LabelIdText = Annotated[str, Field(pattern=r"^[0-9]{1,10}$", description="A uint32 label id, in decimal.")]
+ClassName = Annotated[str, Field(min_length=1, max_length=MAX_LABEL_CHARS)]
+LabelName = Annotated[str, Field(max_length=MAX_LABEL_CHARS)]
+
+
 class SessionCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -244,8 +262,11 @@ class SessionCreate(BaseModel):
         description="Target class; else the first utterance's target.",
     )
     sensor_model: SensorModelIn | None = None
-    label_map: dict[str, str] | None = Field(
-        default=None, description='Integer label id (as a string key) -> class name, e.g. {"7": "backpack"}.'
+    label_map: dict[LabelIdText, ClassName] | None = Field(
+        default=None,
+        max_length=MAX_LABEL_MAP_CEILING,
+        fail_fast=True,
+        description='Integer label id (as a string key) -> class name, e.g. {"7": "backpack"}.',
     )
 
 
@@ -342,8 +363,15 @@ class UtteranceOut(BaseModel):
     )
 
 
-VoxelIndex = Annotated[int, Field(ge=-(2**31), lt=2**31, description="Voxel index along one axis (int32).")]
-LabelId = Annotated[int, Field(ge=0, lt=2**32, description="An id of the session's label map (uint32).")]
+# Strict: a JSON true or 1.0 is not the integer 1.
+VoxelIndex = Annotated[
+    int, Strict(), Field(ge=-(2**31), lt=2**31, description="Voxel index along one axis (int32).")
+]
+LabelId = Annotated[
+    int, Strict(), Field(ge=0, lt=2**32, description="An id of the session's label map (uint32).")
+]
+LabelIds = Annotated[list[LabelId], Field(max_length=MAX_BATCH_CEILING, fail_fast=True)]
+LabelNames = Annotated[list[LabelName], Field(max_length=MAX_BATCH_CEILING, fail_fast=True)]
 
 
 class ObservationBatchJson(BaseModel):
@@ -353,14 +381,27 @@ class ObservationBatchJson(BaseModel):
 
     stamp: float | None = Field(default=None, allow_inf_nan=False, description="Sensor time (s), echoed.")
     voxels: list[Annotated[list[VoxelIndex], Field(min_length=3, max_length=3)]] | None = Field(
-        default=None, description="Voxel indices [i, j, k] in the session's grid."
+        default=None,
+        max_length=MAX_BATCH_CEILING,
+        fail_fast=True,
+        description="Voxel indices [i, j, k] in the session's grid.",
     )
-    points: list[Vec3] | None = Field(default=None, description="Points (m) in the scene graph's frame.")
-    labels: list[LabelId] | list[Annotated[str, Field(max_length=256)]] | None = Field(
-        default=None, description="One label per voxel: class names, or integer ids of the label map."
+    points: list[Vec3] | None = Field(
+        default=None,
+        max_length=MAX_BATCH_CEILING,
+        fail_fast=True,
+        description="Points (m) in the scene graph's frame.",
+    )
+    labels: LabelIds | LabelNames | None = Field(
+        default=None,
+        description="One label per voxel: class names (of the label map's, when the session has one), or "
+        "integer ids of the label map.",
     )
     p_target: list[Annotated[float, Field(ge=0.0, le=1.0)]] | None = Field(
-        default=None, description="Detector probability that each voxel holds the target (instead of labels)."
+        default=None,
+        max_length=MAX_BATCH_CEILING,
+        fail_fast=True,
+        description="Detector probability that each voxel holds the target (instead of labels).",
     )
     sensor_model: SensorModelIn | None = Field(
         default=None, description="Overrides the session's for this batch."

@@ -10,9 +10,27 @@ import math
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3, description="x, y, z in metres")]
+
+#: Objects and regions one scene graph may hold at most, whatever the service's configured limits (which lie
+#: below): the validator refuses a longer list before reading its items, so the work a body can ask for stays
+#: bounded. Lists stop at their first bad item (fail_fast) so that an error is not made per item either.
+MAX_OBJECTS_CEILING = 20_000
+MAX_REGIONS_CEILING = 20_000
+
+
+def _id_text(value: Any) -> Any:
+    """Integer ids (ScanNet's and Hydra's objects have them) read as their decimal text."""
+    return str(value) if isinstance(value, int) and not isinstance(value, bool) else value
+
+
+Id = Annotated[
+    str,
+    BeforeValidator(_id_text),
+    Field(min_length=1, max_length=128, description="1-128 characters; an integer is read as its text."),
+]
 
 
 def _check_finite(name: str, values: list[float]) -> list[float]:
@@ -34,7 +52,7 @@ class Region(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    id: str = Field(min_length=1, max_length=128)
+    id: Id
     name: str = Field(default="", max_length=256)
     center: Vec3
     size: Vec3
@@ -55,12 +73,12 @@ class SceneObject(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    id: str = Field(min_length=1, max_length=128)
+    id: Id
     label: str = Field(min_length=1, max_length=256)
     center: Vec3
     size: Vec3
     yaw: float = 0.0
-    region_id: str | None = None
+    region_id: Id | None = None
     attributes: dict[str, Any] = Field(default_factory=dict)
 
     @field_validator("center")
@@ -102,8 +120,8 @@ class SceneGraph(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     frame_id: str = Field(default="map", max_length=128)
-    regions: list[Region] = Field(default_factory=list)
-    objects: list[SceneObject] = Field(default_factory=list)
+    regions: list[Region] = Field(default_factory=list, max_length=MAX_REGIONS_CEILING, fail_fast=True)
+    objects: list[SceneObject] = Field(default_factory=list, max_length=MAX_OBJECTS_CEILING, fail_fast=True)
 
     @model_validator(mode="after")
     def _check_references(self) -> SceneGraph:
