@@ -49,6 +49,32 @@ DEFAULT_TRUE_POSITIVE_RATE = 0.9
 DEFAULT_FALSE_POSITIVE_RATE = 0.05
 #: Voxels one observation batch may carry.
 DEFAULT_MAX_BATCH_VOXELS = 4_000_000
+#: Label maps whose largest id is below this are looked up in a dense table (one int8 per id: a lookup per
+#: voxel is the fastest there is); larger ids are found by binary search, so no id allocates memory.
+_DENSE_LABEL_IDS = 1 << 16
+
+
+@dataclass(frozen=True)
+class LabelNames:
+    """Class names of a batch as codes into the distinct names: what a batch of string labels is decoded to,
+    so that its memory is one int32 per label plus each distinct name once (a fixed-width numpy string array
+    takes the longest name's width for every label)."""
+
+    codes: np.ndarray  # (M,) int32 indices into `names`
+    names: tuple[str, ...]
+
+    @classmethod
+    def of(cls, labels: Sequence[str]) -> LabelNames:
+        index: dict[str, int] = {}
+        codes = np.fromiter((index.setdefault(name, len(index)) for name in labels), np.int32, len(labels))
+        return cls(codes, tuple(index))
+
+    def __len__(self) -> int:
+        return len(self.codes)
+
+
+#: A batch's labels: label-map ids, or class names (a list, a numpy string array, or `LabelNames`).
+Labels = Sequence[int] | Sequence[str] | np.ndarray | LabelNames
 
 
 def check_target_label(target_label: str, label_map: Mapping[int, str]) -> None:
@@ -195,16 +221,16 @@ def mapped_look_alikes(grid: VoxelGrid, scene_graph: SceneGraph, target_label: s
     voxel holding its centre, as in the summary's places. Empty when the target class is unknown.
     """
     key = class_key(target_label) if target_label else ""
-    parts = []
-    if key:
-        places = cached_place_index(grid, scene_graph, on_margin=0.0).objects  # one per object, in order
-        for place in places:
-            if class_key(place.label) != key:
-                continue
-            i, j, k = (np.arange(axis.start, axis.stop) for axis in place.slices)
-            flat = np.ravel_multi_index(np.meshgrid(i, j, k, indexing="ij"), grid.shape)  # (bx, by, bz)
-            parts.append(flat[place.mask] if place.mask is not None else flat.ravel())
-    return np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+    if not key:
+        return np.zeros(0, dtype=np.int64)
+    inside = None  # (nx, ny, nz) bool, made when an object matches: no per-object index lists
+    for place in cached_place_index(grid, scene_graph, on_margin=0.0).objects:  # one per object, in order
+        if class_key(place.label) != key:
+            continue
+        if inside is None:
+            inside = np.zeros(grid.shape, dtype=bool)
+        inside[place.slices] |= True if place.mask is None else place.mask
+    return np.zeros(0, dtype=np.int64) if inside is None else np.flatnonzero(inside)
 
 
 class ObservationModel:
@@ -239,20 +265,52 @@ class ObservationModel:
         if any(k < 0 for k in label_map):
             msg = "label ids must be non-negative integers"
             raise InvalidInput(msg, "label_map")
-        # label id -> 1 (names the target), 0 (another class), -1 (not in the label map)
-        table = np.full(max(label_map, default=-1) + 1, -1, dtype=np.int8)
-        for label_id, name in label_map.items():
-            table[label_id] = class_key(name) == self._target_key
-        if self._target_key and label_map and not np.any(table == 1):
+        # label id -> 1 (names the target) or 0 (another class); ids not in the map are refused
+        self._ids = np.array(sorted(label_map), dtype=np.int64)
+        self._id_classes = np.array(
+            [class_key(label_map[i]) == self._target_key for i in self._ids.tolist()], dtype=np.int8
+        )
+        self._known_keys = frozenset(class_key(name) for name in label_map.values())
+        if self._target_key and label_map and not np.any(self._id_classes == 1):
             msg = f"no name in label_map matches the target {target_label!r}; name it or send string labels"
             raise InvalidInput(msg, "label_map")
-        self._class_by_id = table
+        self._dense: np.ndarray | None = None
+        if len(self._ids) and self._ids[-1] < _DENSE_LABEL_IDS:
+            self._dense = np.full(int(self._ids[-1]) + 1, -1, dtype=np.int8)
+            self._dense[self._ids] = self._id_classes
 
-    def is_target(self, labels: Sequence[int] | Sequence[str] | np.ndarray) -> np.ndarray:
-        """(M,) bool: which labels name the target; integer ids must be in the label map."""
+    def _classes_of_ids(self, ids: np.ndarray) -> np.ndarray:
+        """(M,) int8: 1 target, 0 another class, -1 not in the label map."""
+        if self._dense is not None:
+            in_table = (ids >= 0) & (ids < len(self._dense))
+            return np.where(in_table, self._dense[np.where(in_table, ids, 0)], -1).astype(np.int8)
+        if not len(self._ids):
+            return np.full(len(ids), -1, dtype=np.int8)
+        slot = np.minimum(np.searchsorted(self._ids, ids), len(self._ids) - 1)
+        return np.where(self._ids[slot] == ids, self._id_classes[slot], -1).astype(np.int8)
+
+    def _names_are_target(self, names: Sequence[str]) -> np.ndarray:
+        """(K,) bool for distinct class names; a name of no class, or of none in the label map, is refused."""
+        keys = [class_key(str(name)) for name in names]
+        nameless = [name for name, key in zip(names, keys, strict=True) if not key]
+        if nameless:
+            msg = f"labels {[str(n)[:40] for n in nameless[:10]]} name no class"
+            raise InvalidInput(msg, "labels")
+        if self._known_keys:
+            unknown = [name for name, key in zip(names, keys, strict=True) if key not in self._known_keys]
+            if unknown:
+                msg = f"labels {[str(n)[:40] for n in unknown[:10]]} are not in the session's label map"
+                raise InvalidInput(msg, "labels")
+        return np.array([key == self._target_key for key in keys], dtype=bool)
+
+    def is_target(self, labels: Labels) -> np.ndarray:
+        """(M,) bool: which labels name the target. Integer ids must be in the label map; class names must
+        name a class, and one of the label map's when the session has one."""
         if not self._target_key:
             msg = "the session's target class is unknown: set target_label or send an utterance first"
             raise Conflict(msg)
+        if isinstance(labels, LabelNames):
+            return self._names_are_target(labels.names)[labels.codes] if len(labels) else np.zeros(0, bool)
         arr = np.asarray(labels)
         if arr.ndim != 1:
             msg = f"labels must be a flat list, got shape {arr.shape}"
@@ -260,16 +318,15 @@ class ObservationModel:
         if arr.size == 0:
             return np.zeros(0, dtype=bool)
         if arr.dtype.kind in "iu":
-            in_table = (arr >= 0) & (arr < len(self._class_by_id))
-            classes = self._class_by_id[np.where(in_table, arr, 0)] if len(self._class_by_id) else None
-            if classes is None or not in_table.all() or np.any(classes < 0):
-                bad = arr if classes is None else arr[~in_table | (classes < 0)]
+            classes = self._classes_of_ids(arr.astype(np.int64, copy=False))
+            if np.any(classes < 0):
+                bad = arr[classes < 0]
                 msg = f"label ids {np.unique(bad)[:10].tolist()} are not in the session's label map"
                 raise InvalidInput(msg, "labels")
             return classes == 1
         if arr.dtype.kind == "U":
             names, inverse = np.unique(arr, return_inverse=True)
-            return np.array([class_key(str(name)) == self._target_key for name in names], dtype=bool)[inverse]
+            return self._names_are_target(names.tolist())[inverse]
         msg = f"labels must be all integers (ids in the label map) or all strings, got dtype {arr.dtype}"
         raise InvalidInput(msg, "labels")
 
@@ -322,7 +379,7 @@ class ObservationModel:
 
     def observation_batch(
         self,
-        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        labels: Labels,
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
@@ -427,7 +484,7 @@ class Session:
 
     def observation_batch(
         self,
-        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        labels: Labels,
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,

@@ -19,6 +19,13 @@ search then looks only inside the blocks whose maximum can make the top k. The s
 exp(s - max s) in float32 and accumulates the entropy term and, per (x, y) column, the mass and the
 first two z moments (one small matrix product per chunk), from which the mean and covariance follow.
 Place index ranges are computed once per (grid, scene graph) and cached. Grid sums finish in float64.
+
+Places and memory: an object's place is kept as index ranges (and, for a yawed box, a mask over its
+footprint), and its flat voxel indices are listed only while all the places' lists together stay under
+`_INDEXED_VOXELS`, so that one gather and one segmented sum give those objects' masses; larger places are
+summed over their sub-box. A scene graph of a few huge boxes then costs the summary time in proportion to
+their volume (which the service caps per session: `place_voxels`, `Settings.max_place_voxels`), never the
+memory of its indices; the cache of place indices is bounded in bytes as well as in entries.
 """
 
 from __future__ import annotations
@@ -49,6 +56,10 @@ _EXP_FLOOR = -80.0
 _EXP_CEILING = 40.0
 #: Place indices kept for (grid, scene graph, margin) triples; one per live session is plenty.
 _PLACE_CACHE_SIZE = 64
+#: Flat voxel indices one place index lists at most (4 bytes each): beyond, places are summed by sub-box.
+_INDEXED_VOXELS = 1 << 20
+#: Bytes of listed indices the place cache holds at most.
+_PLACE_CACHE_BYTES = 64 << 20
 
 
 @dataclass(frozen=True)
@@ -154,21 +165,57 @@ class _Place:
 class PlaceIndex:
     """Every object's and region's voxels on one grid (build once, reuse for every summary).
 
-    `object_voxels[object_bounds[i]:object_bounds[i + 1]]` are object i's flat voxel indices: one gather
-    and one segmented sum give every object's mass (a sum per object cost ~15 us each in Python).
+    `object_voxels[object_bounds[i]:object_bounds[i + 1]]` are the flat voxel indices of the i-th object of
+    `indexed`: one gather and one segmented sum give those objects' masses (a sum per object cost ~15 us
+    each in Python). The other objects (`summed`), whose places were too large to list, are summed over their
+    sub-boxes.
     """
 
     objects: tuple[_Place, ...] = field(default=())
     regions: tuple[_Place, ...] = field(default=())
-    object_voxels: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    object_voxels: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
     object_bounds: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    indexed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # positions in objects
+    summed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.object_voxels.nbytes)
 
 
 def _flat_voxels(grid: VoxelGrid, place: _Place) -> np.ndarray:
-    """A place's flat voxel indices."""
+    """A place's flat voxel indices (int32 on grids below 2^31 voxels)."""
     axes = [np.arange(s.start, max(s.start, s.stop)) for s in place.slices]
     flat = np.ravel_multi_index(np.meshgrid(*axes, indexing="ij"), grid.shape)
-    return (flat[place.mask] if place.mask is not None else flat.ravel()).astype(np.int64)
+    kind = np.int32 if grid.n_voxels < 2**31 else np.int64
+    return (flat[place.mask] if place.mask is not None else flat.ravel()).astype(kind)
+
+
+def _object_aabb(obj: Any, on_margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """(centre, half sizes in the object's frame, half sizes of the map-frame bounding box, cos, sin) of an
+    object's place."""
+    center, half = object_place_box(np.asarray(obj.center), np.asarray(obj.size), on_margin)
+    cos, sin = math.cos(obj.yaw), math.sin(obj.yaw)
+    aabb_half = np.array(
+        [abs(cos) * half[0] + abs(sin) * half[1], abs(sin) * half[0] + abs(cos) * half[1], half[2]]
+    )
+    return center, half, aabb_half, cos, sin
+
+
+def place_voxels(grid: VoxelGrid, scene_graph: SceneGraph, on_margin: float = ON_MARGIN_M) -> int:
+    """The voxels of every object's place (its map-frame bounding box: an upper bound for a yawed one) and of
+    every region, summed: what a summary reads of the grid beyond one pass, at most. Cheap: no voxel is
+    listed."""
+    total = 0
+    for obj in scene_graph.objects:
+        center, _, aabb_half, _, _ = _object_aabb(obj, on_margin)
+        total += _place_size(grid.box_slices(center - aabb_half, center + aabb_half), None)
+    for reg in scene_graph.regions:
+        half = 0.5 * np.asarray(reg.size)
+        total += _place_size(
+            grid.box_slices(np.asarray(reg.center) - half, np.asarray(reg.center) + half), None
+        )
+    return total
 
 
 def object_place_box(center: np.ndarray, size: np.ndarray, on_margin: float) -> tuple[np.ndarray, np.ndarray]:
@@ -182,12 +229,7 @@ def build_place_index(grid: VoxelGrid, scene_graph: SceneGraph, on_margin: float
     """Voxel sets of every object's place (box + `on_margin` on top, yaw respected) and every region's box."""
     objects = []
     for obj in scene_graph.objects:
-        center, half = object_place_box(np.asarray(obj.center), np.asarray(obj.size), on_margin)
-        cos, sin = math.cos(obj.yaw), math.sin(obj.yaw)
-        # Bounding box of the yawed place in the map frame.
-        aabb_half = np.array(
-            [abs(cos) * half[0] + abs(sin) * half[1], abs(sin) * half[0] + abs(cos) * half[1], half[2]]
-        )
+        center, half, aabb_half, cos, sin = _object_aabb(obj, on_margin)
         slices = grid.box_slices(center - aabb_half, center + aabb_half)
         mask = None
         if abs(math.sin(2.0 * obj.yaw)) > 1e-9:  # not a multiple of 90 degrees: the box is not its own AABB
@@ -210,10 +252,19 @@ def build_place_index(grid: VoxelGrid, scene_graph: SceneGraph, on_margin: float
         half = 0.5 * np.asarray(reg.size)
         slices = grid.box_slices(np.asarray(reg.center) - half, np.asarray(reg.center) + half)
         regions.append(_Place("region", reg.id, reg.name, slices))
-    voxels = [_flat_voxels(grid, place) for place in objects]
+    indexed, summed, voxels, listed = [], [], [], 0
+    for position, place in enumerate(objects):
+        size = _place_size(place.slices, place.mask)
+        if listed + size <= _INDEXED_VOXELS:
+            indexed.append(position)
+            voxels.append(_flat_voxels(grid, place))
+            listed += size
+        else:
+            summed.append(position)
     bounds = np.cumsum([0, *(len(v) for v in voxels)]).astype(np.int64)
-    flat = np.concatenate(voxels) if voxels else np.zeros(0, dtype=np.int64)
-    return PlaceIndex(tuple(objects), tuple(regions), flat, bounds)
+    flat = np.concatenate(voxels) if voxels else np.zeros(0, dtype=np.int32)
+    listed_at, summed_at = np.asarray(indexed, dtype=np.int64), np.asarray(summed, dtype=np.int64)
+    return PlaceIndex(tuple(objects), tuple(regions), flat, bounds, listed_at, summed_at)
 
 
 def _place_size(slices: tuple[slice, slice, slice], mask: np.ndarray | None) -> int:
@@ -250,8 +301,9 @@ def cached_place_index(
     index = build_place_index(grid, scene_graph, on_margin)
     with _place_cache_lock:
         _place_cache[key] = index
-        while len(_place_cache) > _PLACE_CACHE_SIZE:
-            _place_cache.popitem(last=False)
+        held = sum(entry.nbytes for entry in _place_cache.values())
+        while len(_place_cache) > _PLACE_CACHE_SIZE or (held > _PLACE_CACHE_BYTES and len(_place_cache) > 1):
+            held -= _place_cache.popitem(last=False)[1].nbytes
     return index
 
 
@@ -347,8 +399,11 @@ def summarize(
     regions: tuple[PlaceMass, ...] = ()
     if scene_graph is not None:
         index = cached_place_index(grid, scene_graph, on_margin, scene_fingerprint)
-        objects = _ranked(index.objects, _segment_sums(p, index.object_voxels, index.object_bounds), z_total)
         p3 = p.reshape(nx, ny, nz)
+        weights = np.zeros(len(index.objects))
+        weights[index.indexed] = _segment_sums(p, index.object_voxels, index.object_bounds)
+        weights[index.summed] = [_place_weight(index.objects[i], p3) for i in index.summed.tolist()]
+        objects = _ranked(index.objects, weights, z_total)
         regions = _ranked(index.regions, [_place_weight(place, p3) for place in index.regions], z_total)
         objects, regions = objects[:max_places], regions[:max_places]
     return PosteriorSummary(
@@ -366,8 +421,10 @@ def summarize(
 
 def _place_weight(place: _Place, p3: np.ndarray) -> float:
     block = p3[place.slices]
-    inside = block if place.mask is None else block[place.mask]
-    return float(inside.sum(dtype=np.float64))
+    if place.mask is None:
+        return float(block.sum(dtype=np.float64))
+    # A yawed place's mask is its footprint repeated along z: sum the columns, then mask the footprint.
+    return float(block.sum(axis=2, dtype=np.float64)[place.mask[:, :, 0]].sum())
 
 
 def _segment_sums(p: np.ndarray, flat: np.ndarray, bounds: np.ndarray) -> np.ndarray:
