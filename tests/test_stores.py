@@ -869,18 +869,26 @@ def test_event_loop_calls_after_a_redis_restart_reconnect_and_apply_each_update_
 
 
 @pytest.mark.redis
-def test_a_commit_whose_reply_was_lost_is_told_landed_only_by_the_name_it_gave(redis_url: str) -> None:
-    clock = FakeClock()
-    store = redis_store(redis_url, clock=clock, ttl_s=None)  # the fake clock's times are long past
-    store.create(make_session("lost-reply"))
-    before = (0, store._client.hget(store._key("lost-reply", "meta"), "updated_at"))
-    clock.now += 1.0
-    store.apply_detections("lost-reply", [0.9], flat_idx=np.array([0]))
-    assert store._outcome("lost-reply", before, clock.now) == 1  # landed: version 1 at that time
-    assert store._outcome("lost-reply", before, clock.now + 1.0) == -2  # another commit made version 1
-    assert store._outcome("lost-reply", (1, b"x"), clock.now) == -2  # not from that state
-    store.delete("lost-reply")
-    assert store._outcome("lost-reply", before, clock.now) == -1
+def test_a_commit_sent_again_is_told_it_landed_and_applies_once(redis_url: str) -> None:
+    """A commit whose reply was lost is sent again (by redis-py, or after a dropped connection), even after
+    another writer committed on top of it: its record says it landed, and nothing is applied twice."""
+    from app.stores.redis_store import _Snapshot
+
+    store = redis_store(redis_url)
+    session = make_session("resent")
+    store.create(session)
+    change, _, _ = store._detections("resent", np.array([0.9]), flat_idx=np.array([0]))
+    mirrored = store._mirror.get("resent")
+    writes, result = change(_Snapshot.of(mirrored), [])
+    commit = store._commit_of("resent", mirrored.stamp, mirrored.static, "", writes, result, None)
+    first = store._script("commit")(keys=commit.keys, args=commit.args)
+    assert store._committed("resent", first, commit, mirrored)
+    store.apply_detections("resent", [0.2], flat_idx=np.array([1]))  # another commit on top
+    again = store._script("commit")(keys=commit.keys, args=commit.args)
+    assert int(again[0]) == -3 and store._committed("resent", again, commit, None)  # its own record
+    for p, i in ((0.9, 0), (0.2, 1)):
+        session.belief.apply_increments(session.detection_batch([p], flat_idx=np.array([i])))
+    assert_same_belief(store.get("resent"), session)
     store.close()
 
 

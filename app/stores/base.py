@@ -10,19 +10,29 @@ until `set_target_label` names one; `apply_detections` needs no class.
 
 Expiry: a session expires `ttl_s` seconds after its last write (creation or update); reads do not extend
 it. An expired session behaves as deleted (`NotFound`).
+
+Idempotency: every change takes an optional `Idempotency` (a client's Idempotency-Key and the fingerprint
+of its request). The session remembers the key with the change, atomically (`IdempotencyRecord`: in the
+same log record or commit), for `idempotency_window_s` and at most `idempotency_keys` keys; a change that
+brings a remembered key changes nothing and raises `AlreadyApplied` with the record, so that a retry of an
+update whose answer was lost (a timeout, a replica killed, a Redis failover) is applied once. A deleted
+session's delete record stays for the window.
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Sequence
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
+import msgpack
 import numpy as np
 
-from app.belief.session import BeliefState, Session, SessionInfo, UpdateResult
+from app.belief.session import BeliefState, Labels, Session, SessionInfo, UpdateResult
 from app.belief.summary import PosteriorSummary
-from app.errors import InvalidInput
+from app.errors import AlreadyApplied, InvalidInput, LimitExceeded
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
 
@@ -35,13 +45,98 @@ _SESSION_ID = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9._\-]{0,127}")
 #: Called with a session's robot id before an update changes it; raises to refuse (e.g. `Forbidden`).
 Authorize = Callable[[str], None]
 
+#: Default window and count of the Idempotency-Keys a session remembers.
+DEFAULT_IDEMPOTENCY_WINDOW_S = 3600.0
+DEFAULT_IDEMPOTENCY_KEYS = 1000
+
+
+@dataclass(frozen=True)
+class Idempotency:
+    """An update's Idempotency-Key, the fingerprint of the request that carried it, and what the caller needs,
+    beyond the update's result, to give its first answer again (`answer`, opaque to the store)."""
+
+    key: str
+    fingerprint: str
+    answer: bytes = b""
+
+
+@dataclass(frozen=True)
+class IdempotencyRecord:
+    """What a session remembers of an update made under an Idempotency-Key (`AlreadyApplied.record`)."""
+
+    fingerprint: str
+    version: int
+    voxels_updated: int = 0
+    voxels_outside: int = 0
+    answer: bytes = b""
+    at: float = 0.0  # when it was applied (store clock)
+    commit: str = ""  # the commit that wrote it (a Redis update recognises its own resent commit by it)
+    robot_id: str = ""  # the session's owner (a deleted session's record is checked against it)
+
+    def pack(self) -> bytes:
+        fields = [self.fingerprint, self.version, self.voxels_updated, self.voxels_outside, self.answer]
+        return msgpack.packb([*fields, self.at, self.commit, self.robot_id], use_bin_type=True)
+
+    @classmethod
+    def unpack(cls, data: bytes) -> IdempotencyRecord:
+        return cls(*msgpack.unpackb(data, raw=False))
+
+    @classmethod
+    def of(
+        cls, idempotency: Idempotency, result: UpdateResult, at: float, commit: str = "", robot_id: str = ""
+    ) -> IdempotencyRecord:
+        return cls(
+            idempotency.fingerprint,
+            result.version,
+            result.voxels_updated,
+            result.voxels_outside,
+            idempotency.answer,
+            at,
+            commit,
+            robot_id,
+        )
+
+
+class IdempotencyLog:
+    """The Idempotency-Keys one session remembers (memory store): the last `max_keys`, none older than
+    `window_s`. Not thread-safe: the session's lock guards it."""
+
+    def __init__(self, window_s: float, max_keys: int) -> None:
+        self.window_s = window_s
+        self.max_keys = max_keys
+        self._records: OrderedDict[str, IdempotencyRecord] = OrderedDict()
+
+    def check(self, idempotency: Idempotency | None, now: float) -> None:
+        """AlreadyApplied if the key is remembered."""
+        if idempotency is None:
+            return
+        record = self._records.get(idempotency.key)
+        if record is not None and now - record.at <= self.window_s:
+            raise AlreadyApplied(record)
+
+    def add(self, key: str, record: IdempotencyRecord) -> None:
+        self._records.pop(key, None)
+        self._records[key] = record
+        while self._records and (
+            len(self._records) > self.max_keys
+            or record.at - next(iter(self._records.values())).at > self.window_s
+        ):
+            self._records.popitem(last=False)
+
+    def items(self) -> list[tuple[str, IdempotencyRecord]]:
+        return list(self._records.items())
+
 
 @runtime_checkable
 class SessionStore(Protocol):
     """Where sessions live between requests; `MemorySessionStore` and `RedisSessionStore` implement it."""
 
-    def create(self, session: Session) -> SessionInfo:
-        """Store a new session (its current layers and version included); InvalidInput if the id exists."""
+    def create(
+        self, session: Session, *, max_per_robot: int | None = None, idempotency: Idempotency | None = None
+    ) -> SessionInfo:
+        """Store a new session (its current layers and version included); InvalidInput if the id exists,
+        LimitExceeded("max_sessions_per_robot") if its robot has `max_per_robot` live sessions already
+        (checked atomically with the creation)."""
         ...
 
     def get(self, session_id: str) -> Session:
@@ -65,11 +160,15 @@ class SessionStore(Protocol):
         """Live sessions (of one robot, if given), oldest first."""
         ...
 
-    def delete(self, session_id: str) -> None:
-        """Remove a session; NotFound if absent."""
+    def delete(
+        self, session_id: str, *, authorize: Authorize | None = None, idempotency: Idempotency | None = None
+    ) -> None:
+        """Remove a session; NotFound if absent. `authorize(robot_id)` as in `apply_observations`."""
         ...
 
-    def replace_scene_graph(self, session_id: str, scene_graph: SceneGraph) -> int:
+    def replace_scene_graph(
+        self, session_id: str, scene_graph: SceneGraph, *, idempotency: Idempotency | None = None
+    ) -> int:
         """Swap the scene graph (the grid and the layers stay); returns the new version."""
         ...
 
@@ -77,14 +176,22 @@ class SessionStore(Protocol):
         """Name the target class (`app.belief.session.check_target_label`); returns the new version."""
         ...
 
-    def apply_utterance(self, session_id: str, mixture: GaussianMixture) -> UpdateResult:
-        """Fuse one utterance's language mixture (fusion equation (3))."""
+    def apply_utterance(
+        self,
+        session_id: str,
+        mixture: GaussianMixture,
+        *,
+        target_label: str | None = None,
+        idempotency: Idempotency | None = None,
+    ) -> UpdateResult:
+        """Fuse one utterance's language mixture (fusion equation (3)); `target_label`, when given, names the
+        target class in the same update if the session has none yet."""
         ...
 
     def apply_observations(
         self,
         session_id: str,
-        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        labels: Labels,
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
@@ -92,6 +199,7 @@ class SessionStore(Protocol):
         tp: float | None = None,
         fp: float | None = None,
         authorize: Authorize | None = None,
+        idempotency: Idempotency | None = None,
     ) -> UpdateResult:
         """Fuse labelled voxels (fusion equation (4)); tp/fp override the session's sensor model.
 
@@ -113,6 +221,7 @@ class SessionStore(Protocol):
         voxels: np.ndarray | None = None,
         prior: float = 0.5,
         authorize: Authorize | None = None,
+        idempotency: Idempotency | None = None,
     ) -> UpdateResult:
         """Fuse detector probabilities (fusion equation (5)); the voxels and `authorize` as in
         `apply_observations`."""
@@ -121,7 +230,7 @@ class SessionStore(Protocol):
     async def apply_observations_async(
         self,
         session_id: str,
-        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        labels: Labels,
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
@@ -129,6 +238,7 @@ class SessionStore(Protocol):
         tp: float | None = None,
         fp: float | None = None,
         authorize: Authorize | None = None,
+        idempotency: Idempotency | None = None,
     ) -> UpdateResult:
         """`apply_observations` for a caller on an event loop, which it never blocks on I/O or a lock."""
         ...
@@ -143,6 +253,7 @@ class SessionStore(Protocol):
         voxels: np.ndarray | None = None,
         prior: float = 0.5,
         authorize: Authorize | None = None,
+        idempotency: Idempotency | None = None,
     ) -> UpdateResult:
         """`apply_detections` for a caller on an event loop, which it never blocks on I/O or a lock."""
         ...
@@ -160,6 +271,11 @@ class SessionStore(Protocol):
         ...
 
     def close(self) -> None: ...
+
+
+def session_limit_error(robot_id: str, limit: int) -> LimitExceeded:
+    msg = f"robot {robot_id!r} already has {limit} sessions; delete one first"
+    return LimitExceeded(msg, limit_name="max_sessions_per_robot")
 
 
 def check_session_id(session_id: str) -> None:

@@ -16,6 +16,10 @@ already includes (LSN <= its snapshot's), which makes a crash anywhere inside co
 
 Layout of `data_dir`: `LOCK` (flock: one process per directory), `wal-<seq>.log`, `sessions/<id>.snap`.
 
+Idempotency-Keys (`app.stores.base`) travel in the record of the update they came with (`idem`), and in the
+snapshot of their session; a deleted session's keys stay (a tombstone) for the window: its delete record
+holds them, and each compaction logs the tombstones still in their window again.
+
 Locking: a lock per session serialises its updates (log append + apply happen under it, so the log order
 is the apply order); a registry lock guards the id -> session map; the log has its own lock. Lock order:
 session, then registry, then log.
@@ -33,7 +37,7 @@ import struct
 import threading
 import time
 import zlib
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from functools import partial
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -46,6 +50,7 @@ from app.belief.session import (
     DEFAULT_MAX_BATCH_VOXELS,
     BeliefState,
     IncrementBatch,
+    Labels,
     Session,
     SessionInfo,
     UpdateResult,
@@ -57,13 +62,19 @@ from app.errors import InvalidInput, NotFound, StoreUnavailable
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
 from app.stores.base import (
+    DEFAULT_IDEMPOTENCY_KEYS,
+    DEFAULT_IDEMPOTENCY_WINDOW_S,
     DEFAULT_TTL_S,
     Authorize,
+    Idempotency,
+    IdempotencyLog,
+    IdempotencyRecord,
     check_session_id,
     compact_indices,
     float64_mixture,
     pack_array,
     pack_mixture,
+    session_limit_error,
     unpack_array,
     unpack_mixture,
 )
@@ -80,16 +91,29 @@ _SNAPSHOT_DIR = "sessions"
 
 
 class _Entry:
-    """A live session with its lock and the LSNs of its last logged update and of its last snapshot."""
+    """A live session with its lock, the Idempotency-Keys it remembers and the LSNs of its last logged update
+    and of its last snapshot."""
 
-    __slots__ = ("deleted", "lock", "lsn", "session", "snap_lsn")
+    __slots__ = ("deleted", "keys", "lock", "lsn", "session", "snap_lsn")
 
-    def __init__(self, session: Session, lsn: int = 0, snap_lsn: int = 0) -> None:
+    def __init__(self, session: Session, keys: IdempotencyLog, lsn: int = 0, snap_lsn: int = 0) -> None:
         self.session = session
+        self.keys = keys
         self.lock = threading.Lock()
         self.lsn = lsn
         self.snap_lsn = snap_lsn
         self.deleted = False
+
+
+def _packed_keys(items: list[tuple[str, IdempotencyRecord]]) -> list[list[Any]]:
+    return [[key, record.pack()] for key, record in items]
+
+
+def _idem_field(idempotency: Idempotency | None, record: IdempotencyRecord | None) -> dict[str, Any]:
+    """The `idem` field of a log record: the key and what it remembers (nothing without a key)."""
+    if idempotency is None or record is None:
+        return {}
+    return {"idem": [idempotency.key, record.pack()]}
 
 
 def _fsync_dir(path: Path) -> None:
@@ -208,14 +232,20 @@ class MemorySessionStore:
         snapshot_every: int = DEFAULT_SNAPSHOT_EVERY,
         snapshot_bytes: int = DEFAULT_SNAPSHOT_BYTES,
         max_batch_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
+        idempotency_window_s: float = DEFAULT_IDEMPOTENCY_WINDOW_S,
+        idempotency_keys: int = DEFAULT_IDEMPOTENCY_KEYS,
         clock: Callable[[], float] = time.time,
     ) -> None:
         self.ttl_s = ttl_s
         self.snapshot_every = snapshot_every
         self.snapshot_bytes = snapshot_bytes
         self.max_batch_voxels = max_batch_voxels
+        self.idempotency_window_s = idempotency_window_s
+        self.idempotency_keys = idempotency_keys
         self._clock = clock
         self._entries: dict[str, _Entry] = {}
+        # deleted sessions' ids -> (robot id, the keys they remembered, their delete's among them)
+        self._tombstones: dict[str, tuple[str, IdempotencyLog]] = {}
         self._registry_lock = threading.Lock()
         self._compact_lock = threading.Lock()
         self._closed = False
@@ -247,7 +277,8 @@ class MemorySessionStore:
         for path in (directory / _SNAPSHOT_DIR).glob("*.snap"):
             snap = msgpack.unpackb(path.read_bytes(), raw=False)
             session = Session.from_meta(snap["meta"], unpack_array(snap["lang"]), unpack_array(snap["vis"]))
-            self._entries[session.id] = _Entry(session, snap["lsn"], snap["lsn"])
+            keys = self._keys(snap.get("idem", []))
+            self._entries[session.id] = _Entry(session, keys, snap["lsn"], snap["lsn"])
             last_lsn = max(last_lsn, snap["lsn"])
         segments = sorted(directory.glob("wal-*.log"), key=_segment_seq)
         replayed = 0
@@ -270,24 +301,44 @@ class MemorySessionStore:
             )
             self._compact()
 
+    def _keys(self, packed: list[list[Any]] | None = None) -> IdempotencyLog:
+        keys = IdempotencyLog(self.idempotency_window_s, self.idempotency_keys)
+        for key, record in packed or []:
+            keys.add(key, IdempotencyRecord.unpack(record))
+        return keys
+
     def _replay(self, record: dict[str, Any]) -> None:
         sid, lsn, op = record["sid"], record["lsn"], record["op"]
         entry = self._entries.get(sid)
+        if op == "tombstone" or (op == "delete" and "idem" in record):
+            self._tombstones[sid] = (record["robot"], self._keys(record.get("keys", [])))
+            if "idem" in record:
+                self._tombstones[sid][1].add(record["idem"][0], IdempotencyRecord.unpack(record["idem"][1]))
+        if op == "tombstone":
+            return
         if op == "create":
             if entry is not None and entry.lsn >= lsn:
                 return  # the snapshot already holds this incarnation
             lang = unpack_array(record["lang"]) if "lang" in record else None
             vis = unpack_array(record["vis"]) if "vis" in record else None
-            self._entries[sid] = _Entry(Session.from_meta(record["meta"], lang, vis), lsn)
+            keys = self._keys()
+            self._entries[sid] = _Entry(Session.from_meta(record["meta"], lang, vis), keys, lsn)
+            self._tombstones.pop(sid, None)
+            if "idem" in record:
+                keys.add(record["idem"][0], IdempotencyRecord.unpack(record["idem"][1]))
             return
         if entry is None or entry.lsn >= lsn:
             return  # deleted later, or already in the snapshot
         if op == "delete":
             del self._entries[sid]
             return
+        if "idem" in record:
+            entry.keys.add(record["idem"][0], IdempotencyRecord.unpack(record["idem"][1]))
         session = entry.session
         if op == "utterance":
             session.belief.apply_utterance(unpack_mixture(record["mixture"]))
+            if "target" in record:
+                session.set_target_label(record["target"])
         elif op == "increments":
             idx = unpack_array(record["idx"]).astype(np.int64)
             session.belief.apply_increments(IncrementBatch(idx, unpack_array(record["inc"])))
@@ -318,6 +369,7 @@ class MemorySessionStore:
             return
         try:
             old_segments = self._wal.rotate()
+            self._log_tombstones()
             with self._registry_lock:
                 entries = list(self._entries.values())
             snap_dir = self._dir / _SNAPSHOT_DIR
@@ -351,6 +403,22 @@ class MemorySessionStore:
         finally:
             self._compact_lock.release()
 
+    def _log_tombstones(self) -> None:
+        """Log again, into the segment just started, the deleted sessions' keys still in their window (the
+        segments that held their delete records are about to go)."""
+        now = self._clock()
+        with self._registry_lock:
+            tombstones = list(self._tombstones.items())
+        for sid, (robot_id, keys) in tombstones:
+            live = [(k, r) for k, r in keys.items() if now - r.at <= self.idempotency_window_s]
+            if not live:
+                with self._registry_lock:
+                    self._tombstones.pop(sid, None)
+                continue
+            self._append(
+                {"op": "tombstone", "sid": sid, "t": now, "robot": robot_id, "keys": _packed_keys(live)}
+            )
+
     @staticmethod
     def _snapshot_bytes(entry: _Entry) -> bytes:
         session = entry.session
@@ -359,6 +427,7 @@ class MemorySessionStore:
             "meta": session.meta(),
             "lang": pack_array(session.belief.lang),
             "vis": pack_array(session.belief.vis),
+            "idem": _packed_keys(entry.keys.items()),
         }
         return msgpack.packb(snap, use_bin_type=True)
 
@@ -394,12 +463,30 @@ class MemorySessionStore:
                 raise NotFound(msg)
             yield entry
 
-    def _remove(self, entry: _Entry) -> bool:
-        """Log the deletion and forget the session; False if someone else removed it first."""
+    def _remove(
+        self, entry: _Entry, authorize: Authorize | None = None, idempotency: Idempotency | None = None
+    ) -> bool:
+        """Log the deletion and forget the session; False if someone else removed it first. With a key, the
+        session's keys and the delete's stay as a tombstone."""
         with entry.lock:
             if entry.deleted:
                 return False
-            self._append({"op": "delete", "sid": entry.session.id, "t": self._clock()})
+            now = self._clock()
+            if authorize is not None:
+                authorize(entry.session.robot_id)
+            entry.keys.check(idempotency, now)
+            record: dict[str, Any] = {"op": "delete", "sid": entry.session.id, "t": now}
+            remembered = None
+            if idempotency is not None:
+                result = UpdateResult(entry.session.id, entry.session.version, 0)
+                remembered = IdempotencyRecord.of(idempotency, result, now, robot_id=entry.session.robot_id)
+                record |= {"robot": entry.session.robot_id, "keys": _packed_keys(entry.keys.items())}
+                record |= _idem_field(idempotency, remembered)
+            self._append(record)
+            if idempotency is not None and remembered is not None:
+                entry.keys.add(idempotency.key, remembered)
+                with self._registry_lock:
+                    self._tombstones[entry.session.id] = (entry.session.robot_id, entry.keys)
             entry.deleted = True
             if self._dir is not None:
                 (self._dir / _SNAPSHOT_DIR / f"{entry.session.id}.snap").unlink(missing_ok=True)
@@ -408,7 +495,9 @@ class MemorySessionStore:
                     del self._entries[entry.session.id]
         return True
 
-    def create(self, session: Session) -> SessionInfo:
+    def create(
+        self, session: Session, *, max_per_robot: int | None = None, idempotency: Idempotency | None = None
+    ) -> SessionInfo:
         self._check_open()
         check_session_id(session.id)
         stored = session.copy()
@@ -418,6 +507,14 @@ class MemorySessionStore:
             with self._registry_lock:
                 existing = self._entries.get(stored.id)
                 if existing is None:
+                    # Counted and created under the registry lock: parallel creations cannot pass the limit.
+                    if max_per_robot is not None:
+                        live = sum(
+                            e.session.robot_id == stored.robot_id and not self._expired(e.session, now)
+                            for e in self._entries.values()
+                        )
+                        if live >= max_per_robot:
+                            raise session_limit_error(stored.robot_id, max_per_robot)
                     record: dict[str, Any] = {
                         "op": "create",
                         "sid": stored.id,
@@ -427,11 +524,22 @@ class MemorySessionStore:
                     for name, layer in (("lang", stored.belief.lang), ("vis", stored.belief.vis)):
                         if np.any(layer):
                             record[name] = pack_array(layer)
+                    keys = self._keys()
+                    remembered = None
+                    if idempotency is not None:
+                        result = UpdateResult(stored.id, stored.version, 0)
+                        remembered = IdempotencyRecord.of(idempotency, result, now, robot_id=stored.robot_id)
+                        record |= _idem_field(idempotency, remembered)
                     # Logged under the registry lock: a compaction listing sessions after its log cut sees
                     # every session whose creation precedes the cut.
-                    self._entries[stored.id] = _Entry(stored, self._append(record))
+                    self._entries[stored.id] = _Entry(stored, keys, self._append(record))
+                    self._tombstones.pop(stored.id, None)
+                    if idempotency is not None and remembered is not None:
+                        keys.add(idempotency.key, remembered)
                     break
             if not self._expired(existing.session, now):
+                with existing.lock:
+                    existing.keys.check(idempotency, now)
                 msg = f"a session with id {stored.id!r} exists"
                 raise InvalidInput(msg, "id")
             self._remove(existing)
@@ -470,17 +578,46 @@ class MemorySessionStore:
         infos = [s.info() for s in sessions if robot_id is None or s.robot_id == robot_id]
         return sorted(infos, key=lambda info: (info.created_at, info.id))
 
-    def delete(self, session_id: str) -> None:
-        if not self._remove(self._entry(session_id)):
+    def delete(
+        self, session_id: str, *, authorize: Authorize | None = None, idempotency: Idempotency | None = None
+    ) -> None:
+        try:
+            entry = self._entry(session_id)
+        except NotFound:
+            self._check_tombstone(session_id, authorize, idempotency)
+            raise
+        if not self._remove(entry, authorize, idempotency):
+            self._check_tombstone(session_id, authorize, idempotency)
             msg = f"no session {session_id!r}"
             raise NotFound(msg)
         self._maybe_compact()
 
-    def replace_scene_graph(self, session_id: str, scene_graph: SceneGraph) -> int:
+    def _check_tombstone(
+        self, session_id: str, authorize: Authorize | None, idempotency: Idempotency | None
+    ) -> None:
+        """AlreadyApplied if a deleted session remembers the key (its owner authorised first)."""
+        with self._registry_lock:
+            tombstone = self._tombstones.get(session_id)
+        if tombstone is None or idempotency is None:
+            return
+        robot_id, keys = tombstone
+        if authorize is not None:
+            authorize(robot_id)
+        with self._registry_lock:
+            keys.check(idempotency, self._clock())
+
+    def replace_scene_graph(
+        self, session_id: str, scene_graph: SceneGraph, *, idempotency: Idempotency | None = None
+    ) -> int:
         with self._locked(session_id) as entry:
             now = self._clock()
+            entry.keys.check(idempotency, now)
             sg = scene_graph.model_dump(mode="json")
-            entry.lsn = self._append({"op": "scene_graph", "sid": session_id, "t": now, "scene_graph": sg})
+            result = UpdateResult(session_id, entry.session.version + 1, 0)
+            remembered = self._record_of(idempotency, result, now)
+            record = {"op": "scene_graph", "sid": session_id, "t": now, "scene_graph": sg}
+            entry.lsn = self._append(record | _idem_field(idempotency, remembered))
+            self._keep(entry, idempotency, remembered)
             entry.session.replace_scene_graph(scene_graph)
             entry.session.belief.version += 1
             entry.session.updated_at = now
@@ -500,41 +637,75 @@ class MemorySessionStore:
         self._maybe_compact()
         return version
 
-    def apply_utterance(self, session_id: str, mixture: GaussianMixture) -> UpdateResult:
+    @staticmethod
+    def _record_of(
+        idempotency: Idempotency | None, result: UpdateResult, now: float
+    ) -> IdempotencyRecord | None:
+        return None if idempotency is None else IdempotencyRecord.of(idempotency, result, now)
+
+    @staticmethod
+    def _keep(entry: _Entry, idempotency: Idempotency | None, record: IdempotencyRecord | None) -> None:
+        """Remember the key, once its update is logged."""
+        if idempotency is not None and record is not None:
+            entry.keys.add(idempotency.key, record)
+
+    def apply_utterance(
+        self,
+        session_id: str,
+        mixture: GaussianMixture,
+        *,
+        target_label: str | None = None,
+        idempotency: Idempotency | None = None,
+    ) -> UpdateResult:
         mixture = float64_mixture(mixture)
         with self._locked(session_id) as entry:
             session = entry.session
+            now = self._clock()
+            entry.keys.check(idempotency, now)
+            names_target = bool(target_label) and not session.target_label
+            if names_target:
+                check_target_label(target_label, session.label_map)  # type: ignore[arg-type]
             # Validate and compute before logging, so that a logged operation always applies; this is the
             # computation `BeliefState.apply_utterance` does on replay.
             candidate = session.belief.lang.copy()
             log_likelihood = language_log_likelihood(session.grid, mixture)
             fusion.apply_language(candidate, log_likelihood, session.belief.limits.lang_span)
-            now = self._clock()
-            entry.lsn = self._append(
-                {"op": "utterance", "sid": session_id, "t": now, "mixture": pack_mixture(mixture)}
-            )
+            result = UpdateResult(session_id, session.version + 1, session.grid.n_voxels)
+            remembered = self._record_of(idempotency, result, now)
+            record = {"op": "utterance", "sid": session_id, "t": now, "mixture": pack_mixture(mixture)}
+            if names_target:
+                record["target"] = target_label
+            entry.lsn = self._append(record | _idem_field(idempotency, remembered))
+            self._keep(entry, idempotency, remembered)
             session.belief.lang = candidate
             session.belief.version += 1
+            if names_target:
+                session.set_target_label(target_label)  # type: ignore[arg-type]
             session.updated_at = now
-            result = UpdateResult(session_id, session.version, session.grid.n_voxels)
         self._maybe_compact()
         return result
 
-    def _apply_batch(self, entry: _Entry, batch: IncrementBatch) -> UpdateResult:
+    def _apply_batch(
+        self, entry: _Entry, batch: IncrementBatch, idempotency: Idempotency | None
+    ) -> UpdateResult:
         session = entry.session
         now = self._clock()
+        result = UpdateResult(session.id, session.version + 1, len(batch.flat_idx), batch.n_outside)
+        remembered = self._record_of(idempotency, result, now)
         if self._wal is not None:
             idx = compact_indices(batch.flat_idx, session.grid.n_voxels)
             record = {"op": "increments", "sid": session.id, "t": now, "idx": pack_array(idx)}
+            record |= _idem_field(idempotency, remembered)
             entry.lsn = self._append({**record, "inc": pack_array(batch.increments)})
+        self._keep(entry, idempotency, remembered)
         session.belief.apply_increments(batch)
         session.updated_at = now
-        return UpdateResult(session.id, session.version, len(batch.flat_idx), batch.n_outside)
+        return result
 
     def apply_observations(
         self,
         session_id: str,
-        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        labels: Labels,
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
@@ -542,10 +713,12 @@ class MemorySessionStore:
         tp: float | None = None,
         fp: float | None = None,
         authorize: Authorize | None = None,
+        idempotency: Idempotency | None = None,
     ) -> UpdateResult:
         with self._locked(session_id) as entry:
             if authorize is not None:
                 authorize(entry.session.robot_id)
+            entry.keys.check(idempotency, self._clock())
             batch = entry.session.observation_batch(
                 labels,
                 points=points,
@@ -555,7 +728,7 @@ class MemorySessionStore:
                 fp=fp,
                 max_voxels=self.max_batch_voxels,
             )
-            result = self._apply_batch(entry, batch)
+            result = self._apply_batch(entry, batch, idempotency)
         self._maybe_compact()
         return result
 
@@ -569,10 +742,12 @@ class MemorySessionStore:
         voxels: np.ndarray | None = None,
         prior: float = 0.5,
         authorize: Authorize | None = None,
+        idempotency: Idempotency | None = None,
     ) -> UpdateResult:
         with self._locked(session_id) as entry:
             if authorize is not None:
                 authorize(entry.session.robot_id)
+            entry.keys.check(idempotency, self._clock())
             batch = entry.session.detection_batch(
                 p_target,
                 points=points,
@@ -581,7 +756,7 @@ class MemorySessionStore:
                 prior=prior,
                 max_voxels=self.max_batch_voxels,
             )
-            result = self._apply_batch(entry, batch)
+            result = self._apply_batch(entry, batch, idempotency)
         self._maybe_compact()
         return result
 

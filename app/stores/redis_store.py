@@ -14,7 +14,15 @@ Keys of session S (the hash tag {S} keeps them in one cluster slot):
     <prefix>:s:{S}:summary  hash: summary options -> msgpack {version, summary}, the last summary computed
                           by any replica: dashboards polling through several replicas summarise each
                           version once, fleet-wide (a reader uses it only if its version is current)
-    <prefix>:sessions, <prefix>:robot:<R>   sorted sets of session ids scored by expiry time (ms)
+    <prefix>:s:{S}:idem   hash: idempotency key -> `IdempotencyRecord` of the commit made under it: a
+                          client's Idempotency-Key ("k:<key>"), or the commit's own id ("c:<id>")
+    <prefix>:s:{S}:idem_at  sorted set: the same keys scored by when they were written (ms)
+    <prefix>:sessions, <prefix>:robot:<R>   sorted sets of session ids scored by expiry time (ms), as last
+                          recorded (a hint: `list` checks every id against its meta hash)
+
+Redis Cluster: the store speaks to a cluster when the URL's server is one (`INFO cluster`), through
+redis-py's cluster clients, unchanged otherwise. Every script touches only keys of one session (one hash
+tag, so one slot) or one index; an index is written apart from the session, after it.
 
 No lost updates across replicas: an update reads what it needs (the meta hash and the blocks it will
 change) in one transaction, computes, and commits with one script call (`_COMMIT_SCRIPT`) that writes only
@@ -35,8 +43,21 @@ An observation batch's update from the mirror also runs on the caller's event lo
 (`apply_observations_async`), committed through that loop's `redis.asyncio` client: it needs no read, so
 no worker thread; an update that must read runs on one.
 
-Expiry: every write sets the same absolute expiry (PEXPIREAT now + ttl) on all of the session's keys and
-its sorted-set scores; Redis drops the keys, listings skip and prune the ids.
+Expiry: every write sets the same absolute expiry (PEXPIREAT now + ttl) on all of the session's keys;
+Redis drops the keys. The index scores follow when they lag by more than a tenth of the ttl (each
+process refreshes a session's after its commits), so a live session's score is at most `_INDEX_LAG` of
+the ttl behind its expiry; listings, the per-robot count and purges allow for that, and prune ids whose
+session is gone.
+
+Exactly once: a commit carries an idempotency key (the client's Idempotency-Key, else a fresh commit id)
+and writes its record in the same script call. A commit sent again (redis-py resends a command whose reply
+timed out or whose connection dropped, and a lost reply is resent here too) finds its record and is told
+it landed; another request with a client's key finds the key's record and changes nothing
+(`AlreadyApplied`). The records of a session are bounded in number and age (`idempotency_keys`,
+`idempotency_window_s`); a keyed delete leaves its record (and no other) for the window.
+
+Locks: a lock holder renews its lock every third of `lock_ttl_s` while it works, so the ttl can be short
+(3 s): a holder that died (kill -9 mid-update) leaves a lock that other writers wait out within that ttl.
 
 Any Redis failure (connection refused or lost, timeout, out of memory) raises `StoreUnavailable`.
 """
@@ -48,6 +69,7 @@ import contextlib
 import dataclasses
 import functools
 import json
+import logging
 import math
 import threading
 import time
@@ -65,6 +87,7 @@ from app.belief.session import (
     DEFAULT_MAX_BATCH_VOXELS,
     BeliefState,
     IncrementBatch,
+    Labels,
     ObservationModel,
     SensorModel,
     Session,
@@ -75,10 +98,20 @@ from app.belief.session import (
     mapped_look_alikes,
 )
 from app.belief.summary import PosteriorSummary, json_fingerprint, summarize
-from app.errors import InvalidInput, NotFound, StoreUnavailable
+from app.errors import AlreadyApplied, InvalidInput, NotFound, StoreUnavailable
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
-from app.stores.base import DEFAULT_TTL_S, Authorize, check_session_id, float64_mixture
+from app.stores.base import (
+    DEFAULT_IDEMPOTENCY_KEYS,
+    DEFAULT_IDEMPOTENCY_WINDOW_S,
+    DEFAULT_TTL_S,
+    Authorize,
+    Idempotency,
+    IdempotencyRecord,
+    check_session_id,
+    float64_mixture,
+    session_limit_error,
+)
 
 #: Voxels per stored block of a new session: 4 kB of float32. A camera's 10k-voxel batch in a 163k-voxel room
 #: touches 160 kB of 1024-voxel blocks, against 550 kB of the 65,536-voxel blocks first used: each update
@@ -86,8 +119,9 @@ from app.stores.base import DEFAULT_TTL_S, Authorize, check_session_id, float64_
 DEFAULT_BLOCK_VOXELS = 1 << 10
 #: The block size of sessions stored before the meta hash recorded one.
 LEGACY_BLOCK_VOXELS = 1 << 16
-#: How long an update may hold a session's lock before another replica may take it (seconds).
-DEFAULT_LOCK_TTL_S = 30.0
+#: How long a session's lock outlives its holder's last renewal (seconds): what a writer waits at most when
+#: the holder died (a live holder renews it every third of this).
+DEFAULT_LOCK_TTL_S = 3.0
 #: How long an update waits for a session's lock before giving up with StoreUnavailable (seconds).
 DEFAULT_LOCK_WAIT_S = 10.0
 #: Commits retried under the lock (only if the lock expired under a slow holder and another writer won).
@@ -99,31 +133,138 @@ _OPTIMISTIC_ATTEMPTS = 3
 #: 1.3 MB for a 163k-voxel room.
 DEFAULT_MIRROR_BYTES = 256 << 20
 
-# KEYS: meta, lock, the two index sets, lang, vis, summary, then the hashes written.
-# ARGV: version read, updated_at read (with the version, the name of the state read: a session deleted
-# and created again under its id restarts its versions), lock token ("" without the lock), new updated_at,
-# index score, expiry ms ("" for none), session id, number of hashes written, then per hash: its number of
-# fields, then field, value, ...
-_COMMIT_SCRIPT = """
+#: How far (a share of the ttl) a live session's index score may lag behind its expiry.
+_INDEX_LAG = 0.1
+#: How long a creation's reservation in its robot's index lasts before the creation makes it its expiry
+#: (seconds): a process that dies between the two leaves an entry that stops counting after this.
+_RESERVATION_S = 60.0
+#: Sessions whose index scores this process remembers (to refresh them only when they lag).
+_INDEXED_SESSIONS = 1 << 16
+
+# HSET of n (field, value) pairs from ARGV[at], in chunks: Lua's unpack() refuses more than ~8000 values
+# (a 16M-voxel layer is 15,625 blocks).
+_HSET_CHUNKS = """
+local function hset_pairs(key, at, n)
+    local done = 0
+    while done < n do
+        local m = math.min(n - done, 1000)
+        local first = at + 2 * done
+        redis.call('HSET', key, unpack(ARGV, first, first + 2 * m - 1))
+        done = done + m
+    end
+end
+"""
+
+# Remember an idempotency key (KEYS[i], KEYS[i + 1]: the idem hash and its sorted set) and forget those
+# past the window or beyond the count.
+_REMEMBER = """
+local function remember(i, key, record, now_ms, window_ms, max_keys)
+    redis.call('HSET', KEYS[i], key, record)
+    redis.call('ZADD', KEYS[i + 1], now_ms, key)
+    local oldest = '(' .. (now_ms - window_ms)
+    local stale = redis.call('ZRANGEBYSCORE', KEYS[i + 1], '-inf', oldest, 'LIMIT', 0, 64)
+    local excess = redis.call('ZCARD', KEYS[i + 1]) - max_keys
+    if excess > 0 then
+        for _, k in ipairs(redis.call('ZRANGE', KEYS[i + 1], 0, excess - 1)) do table.insert(stale, k) end
+    end
+    for _, k in ipairs(stale) do
+        redis.call('HDEL', KEYS[i], k)
+        redis.call('ZREM', KEYS[i + 1], k)
+    end
+end
+"""
+
+# KEYS: meta, lock, lang, vis, summary, idem, idem_at, then the hashes written.
+# ARGV: [1] version read, [2] updated_at read (with the version, the name of the state read: a session
+# deleted and created again under its id restarts its versions), [3] lock token ("" without the lock),
+# [4] new updated_at, [5] expiry ms ("" for none), [6] idempotency key, [7] its record, [8] now ms,
+# [9] window ms, [10] keys kept, [11] number of hashes written, then per hash: its number of fields, then
+# field, value, ...
+# Returns {version} when written, {-1} without the session, {-2} when another writer came first, and
+# {-3, record} when the key was seen (this very commit, resent, or another request with the key).
+_COMMIT_SCRIPT = (
+    _HSET_CHUNKS
+    + _REMEMBER
+    + """
+local seen = redis.call('HGET', KEYS[6], ARGV[6])
+if seen then return {-3, seen} end
 local state = redis.call('HMGET', KEYS[1], 'version', 'updated_at')
-if not state[1] then return -1 end
-if state[1] ~= ARGV[1] or state[2] ~= ARGV[2] then return -2 end
+if not state[1] then return {-1} end
+if state[1] ~= ARGV[1] or state[2] ~= ARGV[2] then return {-2} end
 local holder = redis.call('GET', KEYS[2])
-if holder and holder ~= ARGV[3] then return -2 end
-local at = 9
-for k = 8, 7 + tonumber(ARGV[8]) do
+if holder and holder ~= ARGV[3] then return {-2} end
+local at = 12
+for k = 8, 7 + tonumber(ARGV[11]) do
     local n = tonumber(ARGV[at])
-    redis.call('HSET', KEYS[k], unpack(ARGV, at + 1, at + 2 * n))
+    hset_pairs(KEYS[k], at + 1, n)
     at = at + 1 + 2 * n
 end
 local new = tonumber(state[1]) + 1
 redis.call('HSET', KEYS[1], 'version', new, 'updated_at', ARGV[4])
-if ARGV[6] ~= '' then
-    for _, k in ipairs({1, 5, 6, 7}) do redis.call('PEXPIREAT', KEYS[k], ARGV[6]) end
+remember(6, ARGV[6], ARGV[7], tonumber(ARGV[8]), tonumber(ARGV[9]), tonumber(ARGV[10]))
+if ARGV[5] ~= '' then
+    for _, k in ipairs({1, 3, 4, 5, 6, 7}) do redis.call('PEXPIREAT', KEYS[k], ARGV[5]) end
 end
-redis.call('ZADD', KEYS[3], ARGV[5], ARGV[7])
-redis.call('ZADD', KEYS[4], ARGV[5], ARGV[7])
-return new
+return {new}
+"""
+)
+
+# KEYS: meta, lang, vis, summary, idem, idem_at.
+# ARGV: [1] idempotency key ("" for none), [2] its record, [3] now ms, [4] window ms, [5] keys kept,
+# [6] expiry ms ("" for none), then for meta, lang and vis: the number of fields, then field, value, ...
+# Returns {0} when created, {-1} when the session exists, {-3, record} when it exists made under the key.
+_CREATE_SCRIPT = (
+    _HSET_CHUNKS
+    + _REMEMBER
+    + """
+if redis.call('EXISTS', KEYS[1]) == 1 then
+    local seen = ARGV[1] ~= '' and redis.call('HGET', KEYS[5], ARGV[1])
+    if seen then return {-3, seen} end
+    return {-1}
+end
+redis.call('DEL', KEYS[2], KEYS[3], KEYS[4], KEYS[5], KEYS[6])  -- what a deleted incarnation left
+local at = 7
+for k = 1, 3 do
+    local n = tonumber(ARGV[at])
+    if n > 0 then hset_pairs(KEYS[k], at + 1, n) end
+    at = at + 1 + 2 * n
+end
+if ARGV[1] ~= '' then
+    remember(5, ARGV[1], ARGV[2], tonumber(ARGV[3]), tonumber(ARGV[4]), tonumber(ARGV[5]))
+end
+if ARGV[6] ~= '' then
+    for k = 1, 6 do redis.call('PEXPIREAT', KEYS[k], ARGV[6]) end
+end
+return {0}
+"""
+)
+
+# KEYS: meta, lang, vis, summary, idem, idem_at.
+# ARGV: [1] idempotency key ("" for none), [2] its record, [3] now ms, [4] window ms.
+# Returns {0} when deleted, {-1} without the session, {-3, record} when the key was seen.
+_DELETE_SCRIPT = """
+if ARGV[1] ~= '' then
+    local seen = redis.call('HGET', KEYS[5], ARGV[1])
+    if seen then return {-3, seen} end
+end
+if redis.call('EXISTS', KEYS[1]) == 0 then return {-1} end
+redis.call('DEL', KEYS[1], KEYS[2], KEYS[3], KEYS[4], KEYS[5], KEYS[6])
+if ARGV[1] ~= '' then  -- the tombstone: this delete's record, for the window
+    redis.call('HSET', KEYS[5], ARGV[1], ARGV[2])
+    redis.call('ZADD', KEYS[6], ARGV[3], ARGV[1])
+    redis.call('PEXPIRE', KEYS[5], ARGV[4])
+    redis.call('PEXPIRE', KEYS[6], ARGV[4])
+end
+return {0}
+"""
+
+# KEYS: a robot's index. ARGV: [1] session id, [2] the score from which an entry counts as live, [3] the
+# reservation's score, [4] the robot's limit. Returns 1 when reserved (or already there), 0 at the limit.
+_RESERVE_SCRIPT = """
+if redis.call('ZSCORE', KEYS[1], ARGV[1]) then return 1 end
+if redis.call('ZCOUNT', KEYS[1], ARGV[2], '+inf') >= tonumber(ARGV[4]) then return 0 end
+redis.call('ZADD', KEYS[1], ARGV[3], ARGV[1])
+return 1
 """
 
 _RELEASE_SCRIPT = """
@@ -132,6 +273,15 @@ if redis.call('get', KEYS[1]) == ARGV[1] then
 end
 return 0
 """
+
+_RENEW_SCRIPT = """
+if redis.call('get', KEYS[1]) == ARGV[1] then
+    return redis.call('pexpire', KEYS[1], ARGV[2])
+end
+return 0
+"""
+
+log = logging.getLogger(__name__)
 
 P = ParamSpec("P")
 R = TypeVar("R")
@@ -143,8 +293,8 @@ Reads = Sequence[Read] | Callable[[], Sequence[Read]]
 Writes = dict[str, dict[str, Any]]
 #: change(what the meta hash held, read results) -> (writes, result)
 Change = Callable[["_Snapshot", list[Any]], tuple[Writes, R]]
-#: An observation or detection batch's change, and the reads it needs when it reads.
-BatchUpdate = tuple[Change[UpdateResult], Callable[[], Sequence[Read]]]
+#: An observation or detection batch's change, the reads it needs when it reads, and its idempotency key.
+BatchUpdate = tuple[Change[UpdateResult], Callable[[], Sequence[Read]], Idempotency | None]
 
 
 def _unavailable(exc: Exception) -> StoreUnavailable:
@@ -275,6 +425,18 @@ class _Mirror:
 
 
 @dataclasses.dataclass(frozen=True)
+class _Commit:
+    """One call of `_COMMIT_SCRIPT`: its KEYS and ARGV, and what to know of it once it returns."""
+
+    keys: list[str]
+    args: list[Any]
+    commit_id: str
+    stamp: Stamp  # the state it was computed from
+    writes: Writes
+    now: float  # its updated_at
+
+
+@dataclasses.dataclass(frozen=True)
 class _Snapshot:
     """What an update read of the meta hash, or took from the mirror (then `mirror` is set and the update's
     reads are not made: the change takes the layers and the scene graph from it)."""
@@ -335,10 +497,10 @@ class RedisSessionStore:
         max_batch_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
         socket_timeout_s: float = 5.0,
         mirror_bytes: int = DEFAULT_MIRROR_BYTES,
+        idempotency_window_s: float = DEFAULT_IDEMPOTENCY_WINDOW_S,
+        idempotency_keys: int = DEFAULT_IDEMPOTENCY_KEYS,
         clock: Callable[[], float] = time.time,
     ) -> None:
-        import redis
-
         if block_voxels < 1:
             msg = f"block_voxels must be positive, got {block_voxels}"
             raise InvalidInput(msg, "block_voxels")
@@ -348,17 +510,63 @@ class RedisSessionStore:
         self.lock_ttl_ms = int(lock_ttl_s * 1000)
         self.lock_wait_s = lock_wait_s
         self.max_batch_voxels = max_batch_voxels
+        self.idempotency_window_ms = int(idempotency_window_s * 1000)
+        self.idempotency_keys = idempotency_keys
         self._clock = clock
         self._mirror = _Mirror(mirror_bytes)
-        # Typed Any: redis-py's annotations merge its sync and async return types.
-        self._client: Any = redis.Redis.from_url(
-            url, socket_timeout=socket_timeout_s, socket_connect_timeout=socket_timeout_s
-        )
         self._url, self._socket_timeout_s = url, socket_timeout_s
+        # Connected on first use (a replica may start before Redis does): (client, scripts, is a cluster)
+        self._connection: tuple[Any, dict[str, Any], bool] | None = None
+        self._connect_lock = threading.Lock()
         # (its loop, a redis.asyncio client, the commit script on it)
         self._async: tuple[asyncio.AbstractEventLoop, Any, Any] | None = None
-        self._release = self._client.register_script(_RELEASE_SCRIPT)
-        self._commit = self._client.register_script(_COMMIT_SCRIPT)
+        # session id -> the index score this process last wrote for it
+        self._indexed: OrderedDict[str, float] = OrderedDict()
+        self._indexed_lock = threading.Lock()
+
+    # -- the connection -------------------------------------------------------------------------------------
+
+    def _connect(self) -> tuple[Any, dict[str, Any], bool]:
+        with self._connect_lock:
+            if self._connection is None:
+                import redis
+                from redis.cluster import RedisCluster
+
+                wait = self._socket_timeout_s
+                # Typed Any: redis-py's annotations merge its sync and async return types.
+                client: Any = redis.Redis.from_url(
+                    self._url, socket_timeout=wait, socket_connect_timeout=wait
+                )
+                clustered = bool(client.info("cluster").get("cluster_enabled"))
+                if clustered:
+                    client.close()
+                    client = RedisCluster.from_url(
+                        self._url, socket_timeout=wait, socket_connect_timeout=wait
+                    )
+                sources = {
+                    "commit": _COMMIT_SCRIPT,
+                    "create": _CREATE_SCRIPT,
+                    "delete": _DELETE_SCRIPT,
+                    "reserve": _RESERVE_SCRIPT,
+                    "release": _RELEASE_SCRIPT,
+                    "renew": _RENEW_SCRIPT,
+                }
+                scripts = {name: client.register_script(text) for name, text in sources.items()}
+                self._connection = (client, scripts, clustered)
+            return self._connection
+
+    @property
+    def _client(self) -> Any:
+        """The redis-py client (a `RedisCluster` on a cluster)."""
+        return self._connect()[0]
+
+    def _script(self, name: str) -> Any:
+        return self._connect()[1][name]
+
+    @property
+    def clustered(self) -> bool:
+        """Whether the store speaks to a Redis Cluster."""
+        return self._connect()[2]
 
     # -- keys and small helpers -----------------------------------------------------------------------------
 
@@ -371,14 +579,61 @@ class RedisSessionStore:
     def _expiry_ms(self, now: float) -> float:
         return math.inf if self.ttl_s is None else math.floor((now + self.ttl_s) * 1000)
 
-    def _touch(self, pipe: Any, session_id: str, robot_id: str, now: float) -> None:
-        """Queue the expiry of all the session's keys and index entries (inside MULTI)."""
+    def _live_from_ms(self, now: float) -> float:
+        """The index score from which an entry may be a live session (scores lag by up to `_INDEX_LAG`)."""
+        return -math.inf if self.ttl_s is None else (now - _INDEX_LAG * self.ttl_s) * 1000
+
+    def _index_update(self, session_id: str, now: float) -> tuple[float, Callable[[], None]]:
+        """(the score to record, a function noting it was recorded) if the session's index entries lag by
+        more than `_INDEX_LAG` of the ttl behind an expiry from `now`; (nan, no-op) when they do not."""
         expiry = self._expiry_ms(now)
-        if math.isfinite(expiry):
-            for part in ("meta", "lang", "vis", "summary"):
-                pipe.pexpireat(self._key(session_id, part), int(expiry))
-        pipe.zadd(self._index_key(), {session_id: expiry})
-        pipe.zadd(self._index_key(robot_id), {session_id: expiry})
+        with self._indexed_lock:
+            recorded = self._indexed.get(session_id)
+        if self.ttl_s is None or (
+            recorded is not None and expiry - recorded <= _INDEX_LAG * self.ttl_s * 1000
+        ):
+            return math.nan, lambda: None
+
+        def noted() -> None:
+            with self._indexed_lock:
+                self._indexed[session_id] = expiry
+                self._indexed.move_to_end(session_id)
+                while len(self._indexed) > _INDEXED_SESSIONS:
+                    self._indexed.popitem(last=False)
+
+        return expiry, noted
+
+    def _refresh_index(self, session_id: str, robot_id: str, now: float) -> None:
+        """Move the session's index scores to its expiry when they lag (after a commit; the indexes live in
+        other slots than the session). A failure only leaves them lagging: the next commit tries again."""
+        from redis.exceptions import RedisError
+
+        score, noted = self._index_update(session_id, now)
+        if math.isnan(score):
+            return
+        try:
+            self._client.zadd(self._index_key(), {session_id: score})
+            self._client.zadd(self._index_key(robot_id), {session_id: score})
+        except RedisError as exc:
+            log.warning("session index not refreshed", extra={"session": session_id, "error": str(exc)})
+            return
+        noted()
+
+    async def _refresh_index_async(self, session_id: str, robot_id: str, now: float) -> None:
+        """`_refresh_index` on the event loop's client."""
+        from redis.exceptions import RedisError
+
+        score, noted = self._index_update(session_id, now)
+        if math.isnan(score):
+            return
+        client = (await self._async_client())[0]
+        try:
+            await client.zadd(self._index_key(), {session_id: score})
+            await client.zadd(self._index_key(robot_id), {session_id: score})
+        except RedisError as exc:
+            log.warning("session index not refreshed", extra={"session": session_id, "error": str(exc)})
+            return
+        noted()
 
     @staticmethod
     def _blocks_of(layer: np.ndarray, b: int) -> dict[str, bytes]:
@@ -394,7 +649,7 @@ class RedisSessionStore:
 
     @contextlib.contextmanager
     def _session_lock(self, session_id: str) -> Iterator[str]:
-        """Hold the session's lock; yields its token."""
+        """Hold the session's lock, renewed every third of its ttl until released; yields its token."""
         key, token = self._key(session_id, "lock"), uuid.uuid4().hex
         deadline = time.monotonic() + self.lock_wait_s
         pause = 0.001
@@ -404,12 +659,34 @@ class RedisSessionStore:
                 raise StoreUnavailable(msg)
             time.sleep(pause)
             pause = min(2 * pause, 0.05)
+        released = threading.Event()
+
+        def renew() -> None:
+            from redis.exceptions import RedisError
+
+            while not released.wait(self.lock_ttl_ms / 3000):
+                try:
+                    if not self._script("renew")(keys=[key], args=[token, self.lock_ttl_ms]):
+                        return  # lost it (expired under a stalled process): the commit's checks still hold
+                except RedisError:
+                    return
+
+        renewer = threading.Thread(target=renew, name="vlmap-lock-renewal", daemon=True)
+        renewer.start()
         try:
             yield token
         finally:
-            self._release(keys=[key], args=[token])
+            released.set()
+            renewer.join()
+            self._script("release")(keys=[key], args=[token])
 
-    def _update(self, session_id: str, change: Change[R], reads: Reads = ()) -> R:
+    def _update(
+        self,
+        session_id: str,
+        change: Change[R],
+        reads: Reads = (),
+        idempotency: Idempotency | None = None,
+    ) -> R:
         """One read-compute-commit of a session (see the module docstring).
 
         `reads` are (command, key, *args) read in the same transaction as the meta hash (or a function that
@@ -418,7 +695,7 @@ class RedisSessionStore:
         """
         mirrored = self._mirror.get(session_id)
         for _ in range(_OPTIMISTIC_ATTEMPTS):
-            committed = self._attempt(session_id, change, reads, token="", mirrored=mirrored)
+            committed = self._attempt(session_id, change, reads, "", idempotency, mirrored)
             if committed is not None:
                 return committed[0]
             if mirrored is not None:  # another writer came first: read from now on
@@ -426,7 +703,7 @@ class RedisSessionStore:
                 mirrored = None
         with self._session_lock(session_id) as token:
             for _ in range(_MAX_LOCKED_ATTEMPTS):
-                committed = self._attempt(session_id, change, reads, token)
+                committed = self._attempt(session_id, change, reads, token, idempotency)
                 if committed is not None:
                     return committed[0]
         msg = f"session {session_id!r} kept changing during an update; try again"
@@ -438,6 +715,7 @@ class RedisSessionStore:
         change: Change[R],
         reads: Reads,
         token: str,
+        idempotency: Idempotency | None,
         mirrored: _Mirrored | None = None,
     ) -> tuple[R] | None:
         """Read (or take the mirrored state), compute, commit once; None when another writer came first."""
@@ -460,118 +738,139 @@ class RedisSessionStore:
             static = msgpack.unpackb(static_raw, raw=False)
             snapshot = _Snapshot(static, stamp[0] + 1, look_alike_idx, _block_voxels(block_voxels))
         writes, result = change(snapshot, results)
-        now = self._clock()
-        keys, args = self._commit_arguments(session_id, stamp, snapshot.static, token, writes, now)
-        outcome = self._commit(keys=keys, args=args)
-        return (result,) if self._committed(session_id, outcome, stamp, writes, now, mirrored) else None
+        commit = self._commit_of(session_id, stamp, snapshot.static, token, writes, result, idempotency)
+        outcome = self._script("commit")(keys=commit.keys, args=commit.args)
+        if not self._committed(session_id, outcome, commit, mirrored):
+            return None
+        self._refresh_index(session_id, snapshot.static["robot_id"], commit.now)
+        return (result,)
 
     async def _attempt_from_mirror(
-        self, session_id: str, change: Change[R], mirrored: _Mirrored
+        self, session_id: str, change: Change[R], mirrored: _Mirrored, idempotency: Idempotency | None
     ) -> tuple[R] | None:
         """`_attempt` from the mirrored state, committed through the running event loop's client."""
         from redis.exceptions import ConnectionError as RedisConnectionError
 
         writes, result = change(_Snapshot.of(mirrored), [])
-        now = self._clock()
-        keys, args = self._commit_arguments(session_id, mirrored.stamp, mirrored.static, "", writes, now)
+        commit = self._commit_of(session_id, mirrored.stamp, mirrored.static, "", writes, result, idempotency)
+        script = (await self._async_client())[1]
         try:
-            outcome = await self._async_client()[1](keys=keys, args=args)
+            outcome = await script(keys=commit.keys, args=commit.args)
         except RedisConnectionError:
             # The connection closed, so the reply is lost but not necessarily the commit: a pooled connection
-            # to a Redis that has restarted since fails so on its first use. The commit landed if the stored
-            # state now has the name it gives.
-            outcome = await asyncio.to_thread(_redis_errors(self._outcome), session_id, mirrored.stamp, now)
-        return (
-            (result,) if self._committed(session_id, outcome, mirrored.stamp, writes, now, mirrored) else None
+            # to a Redis that has restarted since fails so on its first use. Sent again, the commit finds its
+            # own record if it landed.
+            outcome = await script(keys=commit.keys, args=commit.args)
+        if not self._committed(session_id, outcome, commit, mirrored):
+            return None
+        await self._refresh_index_async(session_id, mirrored.static["robot_id"], commit.now)
+        return (result,)
+
+    def _commit_of(
+        self,
+        session_id: str,
+        stamp: Stamp,
+        static: dict[str, Any],
+        token: str,
+        writes: Writes,
+        result: Any,
+        idempotency: Idempotency | None,
+    ) -> _Commit:
+        """The `_COMMIT_SCRIPT` call for writes computed from the state named `stamp`, with the record of its
+        idempotency key (the client's, else its own id)."""
+        now = self._clock()
+        commit_id = uuid.uuid4().hex
+        key = f"k:{idempotency.key}" if idempotency is not None else f"c:{commit_id}"
+        update = result if isinstance(result, UpdateResult) else UpdateResult(session_id, stamp[0] + 1, 0)
+        update = dataclasses.replace(update, version=stamp[0] + 1)
+        record = IdempotencyRecord.of(
+            idempotency or Idempotency(key, ""), update, now, commit_id, static["robot_id"]
         )
-
-    def _outcome(self, session_id: str, stamp: Stamp, now: float) -> int:
-        """What a commit from the state `stamp` at time `now` did, read back: as the script answers."""
-        version, updated_at = self._client.hmget(self._key(session_id, "meta"), ["version", "updated_at"])
-        if version is None:
-            return -1
-        landed = int(version) == stamp[0] + 1 and updated_at == repr(now).encode()
-        return stamp[0] + 1 if landed else -2
-
-    def _commit_arguments(
-        self, session_id: str, stamp: Stamp, static: dict[str, Any], token: str, writes: Writes, now: float
-    ) -> tuple[list[str], list[Any]]:
-        """KEYS and ARGV of `_COMMIT_SCRIPT` for writes computed from the state named `stamp`."""
         expiry = self._expiry_ms(now)
-        finite = math.isfinite(expiry)
-        index_keys = [self._index_key(), self._index_key(static["robot_id"])]
-        keys = [self._key(session_id, "meta"), self._key(session_id, "lock"), *index_keys]
-        keys += [self._key(session_id, part) for part in ("lang", "vis", "summary")]
-        args: list[Any] = [stamp[0], stamp[1], token, repr(now), int(expiry) if finite else "inf"]
-        args += [int(expiry) if finite else "", session_id, len(writes)]
-        for key, fields in writes.items():
-            keys.append(key)
+        keys = [self._key(session_id, part) for part in ("meta", "lock", "lang", "vis", "summary")]
+        keys += [self._key(session_id, "idem"), self._key(session_id, "idem_at")]
+        args: list[Any] = [stamp[0], stamp[1], token, repr(now), int(expiry) if math.isfinite(expiry) else ""]
+        args += [key, record.pack(), int(now * 1000), self.idempotency_window_ms, self.idempotency_keys]
+        args.append(len(writes))
+        for hash_key, fields in writes.items():
+            keys.append(hash_key)
             args.append(len(fields))
             for field_name, value in fields.items():
                 args += [field_name, value]
-        return keys, args
+        return _Commit(keys, args, commit_id, stamp, writes, now)
 
     def _committed(
-        self,
-        session_id: str,
-        outcome: int,
-        stamp: Stamp,
-        writes: Writes,
-        now: float,
-        mirrored: _Mirrored | None,
+        self, session_id: str, outcome: list[Any], commit: _Commit, mirrored: _Mirrored | None
     ) -> bool:
-        """The commit script's outcome: True if it wrote (the mirror then follows), False if another writer
-        came first; NotFound if the session is gone."""
-        if outcome == -1:
+        """The commit script's outcome: True if it wrote, now or when sent before (the mirror then follows),
+        False if another writer came first; NotFound if the session is gone, AlreadyApplied if the client's
+        key was seen."""
+        code = int(outcome[0])
+        if code == -1:
             msg = f"no session {session_id!r}"
             raise NotFound(msg)
-        if outcome == -2:
+        if code == -2:
             return False
+        if code == -3:
+            record = IdempotencyRecord.unpack(outcome[1])
+            if record.commit != commit.commit_id:
+                raise AlreadyApplied(record)
+        stamp = commit.stamp
         base = mirrored or self._mirror.get(session_id, stamp)
         if base is not None:  # the mirror follows the commit (with the bytes Redis now holds)
-            parts = {key.rsplit(":", 1)[1]: fields for key, fields in writes.items()}
-            self._mirror.put(session_id, base.after(parts, (stamp[0] + 1, repr(now).encode())))
+            parts = {key.rsplit(":", 1)[1]: fields for key, fields in commit.writes.items()}
+            self._mirror.put(session_id, base.after(parts, (stamp[0] + 1, repr(commit.now).encode())))
         return True
 
     # -- SessionStore ---------------------------------------------------------------------------------------
 
     @_redis_errors
-    def create(self, session: Session) -> SessionInfo:
+    def create(
+        self, session: Session, *, max_per_robot: int | None = None, idempotency: Idempotency | None = None
+    ) -> SessionInfo:
         check_session_id(session.id)
-        from redis.exceptions import WatchError
-
-        meta_key = self._key(session.id, "meta")
         now = self._clock()
         static = msgpack.packb(_static_meta(session), use_bin_type=True)
         sg = session.scene_graph.model_dump_json().encode()
         look_alikes = _look_alikes(session.grid, session.scene_graph, session.target_label)
-        with self._client.pipeline() as pipe:
-            try:
-                pipe.watch(meta_key)
-                if pipe.exists(meta_key):
-                    msg = f"a session with id {session.id!r} exists"
-                    raise InvalidInput(msg, "id")
-                pipe.multi()
-                pipe.hset(
-                    meta_key,
-                    mapping={
-                        "static": static,
-                        "sg": sg,
-                        "look_alikes": look_alikes,
-                        "block_voxels": self.block_voxels,
-                        "version": session.version,
-                        "updated_at": repr(now),
-                    },
-                )
-                for part, layer in (("lang", session.belief.lang), ("vis", session.belief.vis)):
-                    if np.any(layer):
-                        blocks = self._blocks_of(layer, self.block_voxels)
-                        pipe.hset(self._key(session.id, part), mapping=blocks)
-                self._touch(pipe, session.id, session.robot_id, now)
-                pipe.execute()
-            except WatchError as exc:
-                msg = f"a session with id {session.id!r} exists"
-                raise InvalidInput(msg, "id") from exc
+        expiry = self._expiry_ms(now)
+        robot_index = self._index_key(session.robot_id)
+        if max_per_robot is not None:
+            self._reserve(session.id, robot_index, now, max_per_robot)
+        meta = {
+            "static": static,
+            "sg": sg,
+            "look_alikes": look_alikes,
+            "block_voxels": self.block_voxels,
+            "version": session.version,
+            "updated_at": repr(now),
+        }
+        parts = [meta]
+        for layer in (session.belief.lang, session.belief.vis):
+            parts.append(self._blocks_of(layer, self.block_voxels) if np.any(layer) else {})
+        record = b""
+        if idempotency is not None:
+            result = UpdateResult(session.id, session.version, 0)
+            record = IdempotencyRecord.of(idempotency, result, now, robot_id=session.robot_id).pack()
+        args: list[Any] = [f"k:{idempotency.key}" if idempotency is not None else "", record, int(now * 1000)]
+        args += [
+            self.idempotency_window_ms,
+            self.idempotency_keys,
+            int(expiry) if math.isfinite(expiry) else "",
+        ]
+        for fields in parts:
+            args.append(len(fields))
+            for name, value in fields.items():
+                args += [name, value]
+        keys = [self._key(session.id, part) for part in ("meta", "lang", "vis", "summary", "idem", "idem_at")]
+        outcome = self._script("create")(keys=keys, args=args)
+        if int(outcome[0]) < 0:
+            if int(outcome[0]) == -3:
+                raise AlreadyApplied(IdempotencyRecord.unpack(outcome[1]))
+            msg = f"a session with id {session.id!r} exists"
+            raise InvalidInput(msg, "id")
+        self._client.zadd(self._index_key(), {session.id: expiry})
+        self._client.zadd(robot_index, {session.id: expiry})  # the reservation becomes the expiry
         stamp = (session.version, repr(now).encode())
         self._mirror.put(
             session.id,
@@ -586,6 +885,42 @@ class RedisSessionStore:
             ),
         )
         return dataclasses.replace(session.info(), updated_at=now)
+
+    def _reserve(self, session_id: str, robot_index: str, now: float, limit: int) -> None:
+        """Count the session in its robot's index, atomically with the check that the robot has fewer than
+        `limit` live sessions (LimitExceeded otherwise). Entries of sessions that are gone are pruned first;
+        the reservation lasts `_RESERVATION_S` until the creation makes it the session's expiry."""
+        self._live_ids(robot_index, now)
+        reservation = (now + _RESERVATION_S) * 1000
+        if self.ttl_s is None:
+            reservation = math.inf
+        live_from = self._live_from_ms(now)
+        args = [session_id, live_from, reservation, limit]
+        if not self._script("reserve")(keys=[robot_index], args=args):
+            raise session_limit_error(robot_index.rsplit(":", 1)[1], limit)
+
+    def _live_ids(self, index: str, now: float) -> list[tuple[str, dict[str, Any], bytes, bytes]]:
+        """(id, static, version, updated_at) of the index's sessions that still exist, oldest score first;
+        entries whose session is gone (and whose score says it should be) are removed."""
+        now_ms = now * 1000
+        self._client.zremrangebyscore(index, "-inf", f"({self._live_from_ms(now)}")
+        entries = self._client.zrangebyscore(index, self._live_from_ms(now), "+inf", withscores=True)
+        ids = [sid.decode() for sid, _ in entries]
+        with self._client.pipeline(transaction=False) as pipe:
+            for sid in ids:
+                pipe.hmget(self._key(sid, "meta"), ["static", "version", "updated_at"])
+            rows = pipe.execute()
+        live, gone = [], []
+        for (sid, score), (static_raw, version, updated_at) in zip(
+            zip(ids, (score for _, score in entries), strict=True), rows, strict=True
+        ):
+            if static_raw is not None:
+                live.append((sid, msgpack.unpackb(static_raw, raw=False), version, updated_at))
+            elif score < now_ms:  # expired or deleted; a newer score is a creation in flight
+                gone.append(sid)
+        if gone:
+            self._client.zrem(index, *gone)
+        return live
 
     def _read(self, session_id: str, parts: tuple[str, ...]) -> tuple[dict[bytes, bytes], ...]:
         """HGETALL of the given hashes in one transaction (a consistent view); NotFound without meta."""
@@ -636,17 +971,24 @@ class RedisSessionStore:
             raise NotFound(msg)
         return _info(session_id, msgpack.unpackb(static_raw, raw=False), version, updated_at)
 
-    def _async_client(self) -> tuple[Any, Any]:
+    async def _async_client(self) -> tuple[Any, Any]:
         """A redis.asyncio client of the running event loop (one per loop: its connections belong to it) and
-        the commit script registered on it."""
+        the commit script registered on it; of the cluster's kind when the server is one."""
         import redis.asyncio
+        from redis.asyncio.cluster import RedisCluster
 
         loop = asyncio.get_running_loop()
-        if self._async is None or self._async[0] is not loop:
+        current = self._async
+        if current is None or current[0] is not loop:
+            # Whether the server is a cluster is asked once, by the threaded client, off the loop.
+            connection = self._connection
+            if connection is None:
+                connection = await asyncio.to_thread(self._connect)
+            kind: Any = RedisCluster if connection[2] else redis.asyncio.Redis
             wait = self._socket_timeout_s
-            client = redis.asyncio.Redis.from_url(self._url, socket_timeout=wait, socket_connect_timeout=wait)
-            self._async = (loop, client, client.register_script(_COMMIT_SCRIPT))
-        return self._async[1], self._async[2]
+            client = kind.from_url(self._url, socket_timeout=wait, socket_connect_timeout=wait)
+            current = self._async = (loop, client, client.register_script(_COMMIT_SCRIPT))
+        return current[1], current[2]
 
     async def owner_and_version(self, session_id: str) -> tuple[str, int]:
         from redis.exceptions import ConnectionError as RedisConnectionError
@@ -655,9 +997,9 @@ class RedisSessionStore:
         fields = (self._key(session_id, "meta"), ["static", "version"])
         try:
             try:
-                static_raw, version = await self._async_client()[0].hmget(*fields)
+                static_raw, version = await (await self._async_client())[0].hmget(*fields)
             except RedisConnectionError:  # a pooled connection to a Redis that has restarted since: once more
-                static_raw, version = await self._async_client()[0].hmget(*fields)
+                static_raw, version = await (await self._async_client())[0].hmget(*fields)
         except RedisError as exc:
             raise _unavailable(exc) from exc
         if static_raw is None:
@@ -675,38 +1017,52 @@ class RedisSessionStore:
 
     @_redis_errors
     def list(self, robot_id: str | None = None) -> list[SessionInfo]:
-        index = self._index_key(robot_id)
-        now_ms = self._clock() * 1000
-        self._client.zremrangebyscore(index, "-inf", f"({now_ms}")
-        ids = [sid.decode() for sid in self._client.zrangebyscore(index, now_ms, "+inf")]
-        with self._client.pipeline(transaction=False) as pipe:
-            for sid in ids:
-                pipe.hmget(self._key(sid, "meta"), ["static", "version", "updated_at"])
-            rows = pipe.execute()
-        infos = [
-            _info(sid, msgpack.unpackb(static_raw, raw=False), version, updated_at)
-            for sid, (static_raw, version, updated_at) in zip(ids, rows, strict=True)
-            if static_raw is not None  # else deleted or expired since the index was read
-        ]
+        rows = self._live_ids(self._index_key(robot_id), self._clock())
+        infos = [_info(sid, static, version, updated_at) for sid, static, version, updated_at in rows]
         return sorted(infos, key=lambda info: (info.created_at, info.id))
 
     @_redis_errors
-    def delete(self, session_id: str) -> None:
-        with self._session_lock(session_id):
-            static_raw = self._client.hget(self._key(session_id, "meta"), "static")
-            if static_raw is None:
-                msg = f"no session {session_id!r}"
-                raise NotFound(msg)
-            robot_id = msgpack.unpackb(static_raw, raw=False)["robot_id"]
-            with self._client.pipeline(transaction=True) as pipe:
-                pipe.delete(*(self._key(session_id, part) for part in ("meta", "lang", "vis", "summary")))
-                pipe.zrem(self._index_key(), session_id)
-                pipe.zrem(self._index_key(robot_id), session_id)
-                pipe.execute()
-            self._mirror.drop(session_id)
+    def delete(
+        self, session_id: str, *, authorize: Authorize | None = None, idempotency: Idempotency | None = None
+    ) -> None:
+        meta_key, idem_key = self._key(session_id, "meta"), self._key(session_id, "idem")
+        key = f"k:{idempotency.key}" if idempotency is not None else ""
+        with self._client.pipeline(transaction=True) as pipe:
+            pipe.hget(meta_key, "static")
+            pipe.hget(idem_key, key or "-")
+            static_raw, seen = pipe.execute()
+        if seen is not None and key:
+            earlier = IdempotencyRecord.unpack(seen)
+            if authorize is not None:
+                authorize(earlier.robot_id)
+            raise AlreadyApplied(earlier)
+        if static_raw is None:
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        robot_id = msgpack.unpackb(static_raw, raw=False)["robot_id"]
+        if authorize is not None:
+            authorize(robot_id)
+        now = self._clock()
+        packed = b""
+        if idempotency is not None:
+            result = UpdateResult(session_id, 0, 0)
+            packed = IdempotencyRecord.of(idempotency, result, now, robot_id=robot_id).pack()
+        keys = [self._key(session_id, part) for part in ("meta", "lang", "vis", "summary", "idem", "idem_at")]
+        args = [key, packed, int(now * 1000), self.idempotency_window_ms]
+        outcome = self._script("delete")(keys=keys, args=args)
+        if int(outcome[0]) == -3:
+            raise AlreadyApplied(IdempotencyRecord.unpack(outcome[1]))
+        if int(outcome[0]) == -1:
+            msg = f"no session {session_id!r}"
+            raise NotFound(msg)
+        self._client.zrem(self._index_key(), session_id)
+        self._client.zrem(self._index_key(robot_id), session_id)
+        self._mirror.drop(session_id)
 
     @_redis_errors
-    def replace_scene_graph(self, session_id: str, scene_graph: SceneGraph) -> int:
+    def replace_scene_graph(
+        self, session_id: str, scene_graph: SceneGraph, *, idempotency: Idempotency | None = None
+    ) -> int:
         sg_json = scene_graph.model_dump_json()
         meta_key = self._key(session_id, "meta")
 
@@ -715,27 +1071,38 @@ class RedisSessionStore:
             look_alikes = _look_alikes(grid, scene_graph, meta.static["target_label"])
             return {meta_key: {"sg": sg_json, "look_alikes": look_alikes}}, meta.new_version
 
-        return self._update(session_id, change)
+        return self._update(session_id, change, idempotency=idempotency)
+
+    def _target_writes(self, meta: _Snapshot, label: str, scene_graph_json: bytes) -> dict[str, bytes]:
+        """The meta hash's fields once the target class is `label` (checked against the label map)."""
+        label_map = {int(k): str(v) for k, v in meta.static["label_map"]}
+        check_target_label(label, label_map)
+        packed = msgpack.packb({**meta.static, "target_label": label}, use_bin_type=True)
+        scene_graph = parse_scene_graph_json(scene_graph_json)
+        look_alikes = _look_alikes(VoxelGrid.from_dict(meta.static["grid"]), scene_graph, label)
+        return {"static": packed, "look_alikes": look_alikes}
 
     @_redis_errors
     def set_target_label(self, session_id: str, label: str) -> int:
         meta_key = self._key(session_id, "meta")
 
         def change(meta: _Snapshot, read: list[Any]) -> tuple[Writes, int]:
-            label_map = {int(k): str(v) for k, v in meta.static["label_map"]}
-            check_target_label(label, label_map)
-            packed = msgpack.packb({**meta.static, "target_label": label}, use_bin_type=True)
             raw = read[0] if meta.mirror is None else meta.mirror.scene_graph_json
-            scene_graph = parse_scene_graph_json(raw)
-            look_alikes = _look_alikes(VoxelGrid.from_dict(meta.static["grid"]), scene_graph, label)
-            return {meta_key: {"static": packed, "look_alikes": look_alikes}}, meta.new_version
+            return {meta_key: self._target_writes(meta, label, raw)}, meta.new_version
 
         return self._update(session_id, change, reads=[("hget", meta_key, "sg")])
 
     @_redis_errors
-    def apply_utterance(self, session_id: str, mixture: GaussianMixture) -> UpdateResult:
+    def apply_utterance(
+        self,
+        session_id: str,
+        mixture: GaussianMixture,
+        *,
+        target_label: str | None = None,
+        idempotency: Idempotency | None = None,
+    ) -> UpdateResult:
         mixture = float64_mixture(mixture)
-        lang_key = self._key(session_id, "lang")
+        lang_key, meta_key = self._key(session_id, "lang"), self._key(session_id, "meta")
 
         def change(meta: _Snapshot, read: list[Any]) -> tuple[Writes, UpdateResult]:
             grid = VoxelGrid.from_dict(meta.static["grid"])
@@ -745,10 +1112,16 @@ class RedisSessionStore:
                 lang = self._assemble(read[0], grid.n_voxels, meta.block_voxels)
             span = fusion.LayerLimits(**meta.static["limits"]).lang_span
             fusion.apply_language(lang, language_log_likelihood(grid, mixture), span)
-            writes = {lang_key: self._blocks_of(lang, meta.block_voxels)}
+            writes: Writes = {lang_key: self._blocks_of(lang, meta.block_voxels)}
+            if target_label and not meta.static["target_label"]:
+                raw = read[1] if meta.mirror is None else meta.mirror.scene_graph_json
+                writes[meta_key] = self._target_writes(meta, target_label, raw)
             return writes, UpdateResult(session_id, meta.new_version, grid.n_voxels)
 
-        return self._update(session_id, change, reads=[("hgetall", lang_key)])
+        reads: list[Read] = [("hgetall", lang_key)]
+        if target_label:
+            reads.append(("hget", meta_key, "sg"))
+        return self._update(session_id, change, reads=reads, idempotency=idempotency)
 
     def _observer(self, static: dict[str, Any], look_alikes: np.ndarray) -> ObservationModel:
         return ObservationModel(
@@ -766,7 +1139,7 @@ class RedisSessionStore:
         flat_idx: np.ndarray | None,
         voxels: np.ndarray | None,
         authorize: Authorize | None,
-    ) -> BatchUpdate:
+    ) -> tuple[Change[UpdateResult], Callable[[], Sequence[Read]]]:
         """The change an observation or detection batch makes, and the reads it needs when it reads."""
         vis_key = self._key(session_id, "vis")
         guess = self.block_voxels
@@ -830,8 +1203,8 @@ class RedisSessionStore:
         return change, reads
 
     def _apply_batch(self, session_id: str, update: BatchUpdate) -> UpdateResult:
-        change, reads = update
-        return self._update(session_id, change, reads=reads)
+        change, reads, idempotency = update
+        return self._update(session_id, change, reads=reads, idempotency=idempotency)
 
     async def _apply_batch_async(self, session_id: str, update: BatchUpdate) -> UpdateResult:
         """`_apply_batch` for a caller on an event loop: from the mirror it computes there and commits with
@@ -839,22 +1212,23 @@ class RedisSessionStore:
         reading update on a worker thread."""
         from redis.exceptions import RedisError
 
-        change, reads = update
+        change, reads, idempotency = update
         mirrored = self._mirror.get(session_id)
         if mirrored is not None:
             try:
-                committed = await self._attempt_from_mirror(session_id, change, mirrored)
+                committed = await self._attempt_from_mirror(session_id, change, mirrored, idempotency)
             except RedisError as exc:
                 raise _unavailable(exc) from exc
             if committed is not None:
                 return committed[0]
             self._mirror.drop(session_id, mirrored.stamp)  # another writer came first: read from now on
-        return await asyncio.to_thread(_redis_errors(self._update), session_id, change, reads)
+        update_ = functools.partial(self._update, session_id, change, reads, idempotency)
+        return await asyncio.to_thread(_redis_errors(update_))
 
     def _observations(
         self,
         session_id: str,
-        labels: Sequence[int] | Sequence[str] | np.ndarray,
+        labels: Labels,
         *,
         points: np.ndarray | None = None,
         flat_idx: np.ndarray | None = None,
@@ -862,6 +1236,7 @@ class RedisSessionStore:
         tp: float | None = None,
         fp: float | None = None,
         authorize: Authorize | None = None,
+        idempotency: Idempotency | None = None,
     ) -> BatchUpdate:
         """`apply_observations`'s update (its arguments are those of `SessionStore.apply_observations`)."""
         make = functools.partial(
@@ -874,7 +1249,7 @@ class RedisSessionStore:
             fp=fp,
             max_voxels=self.max_batch_voxels,
         )
-        return self._batch_update(session_id, make, flat_idx, voxels, authorize)
+        return (*self._batch_update(session_id, make, flat_idx, voxels, authorize), idempotency)
 
     def _detections(
         self,
@@ -886,6 +1261,7 @@ class RedisSessionStore:
         voxels: np.ndarray | None = None,
         prior: float = 0.5,
         authorize: Authorize | None = None,
+        idempotency: Idempotency | None = None,
     ) -> BatchUpdate:
         """`apply_detections`'s update (its arguments are those of `SessionStore.apply_detections`)."""
         make = functools.partial(
@@ -897,7 +1273,7 @@ class RedisSessionStore:
             prior=prior,
             max_voxels=self.max_batch_voxels,
         )
-        return self._batch_update(session_id, make, flat_idx, voxels, authorize)
+        return (*self._batch_update(session_id, make, flat_idx, voxels, authorize), idempotency)
 
     @_redis_errors
     def apply_observations(self, session_id: str, labels: Any, **kwargs: Any) -> UpdateResult:
@@ -961,10 +1337,22 @@ class RedisSessionStore:
 
     @_redis_errors
     def purge_expired(self) -> int:
-        return int(self._client.zremrangebyscore(self._index_key(), "-inf", f"({self._clock() * 1000}"))
+        """Prune the index entries of sessions Redis has dropped (their keys expire by themselves)."""
+        now = self._clock()
+        index = self._index_key()
+        stale = [sid.decode() for sid in self._client.zrangebyscore(index, "-inf", f"({now * 1000}")]
+        with self._client.pipeline(transaction=False) as pipe:
+            for sid in stale:
+                pipe.exists(self._key(sid, "meta"))
+            alive = pipe.execute()
+        gone = [sid for sid, exists in zip(stale, alive, strict=True) if not exists]
+        if gone:
+            self._client.zrem(index, *gone)
+        return len(gone)
 
     def close(self) -> None:
-        self._client.close()
+        if self._connection is not None:
+            self._connection[0].close()
 
     def __enter__(self) -> RedisSessionStore:
         return self
