@@ -71,7 +71,7 @@ def test_uniform_prior_then_an_utterance_puts_mass_on_the_tables(client: TestCli
     body = response.json()
     assert {h["anchor_ids"][0] for h in body["grounding"]["hypotheses"]} == {"t1", "t2"}
     belief = body["belief"]
-    assert belief["version"] == 2  # the utterance, then the target class learnt from it
+    assert belief["version"] == 1  # the utterance and the target class learnt from it: one update
     assert belief["target_label"] == "backpack"
     assert belief["summary"]["information_gain_nats"] > 2.0
     top_places = {p["id"] for p in belief["summary"]["objects"][:2]}
@@ -447,9 +447,9 @@ def test_an_unset_target_is_still_learnt_from_the_first_utterance_naming_a_class
     sid = _create(client, two_rooms)["id"]
     body = _say(client, sid, "the mug is on the table")
     assert (body["fused"], body["reason"]) == (True, None)
-    assert body["belief"]["target_label"] == "mug" and body["belief"]["version"] == 2
+    assert body["belief"]["target_label"] == "mug" and body["belief"]["version"] == 1
     refused = _say(client, sid, "my backpack is on the sofa")
-    assert refused["fused"] is False and refused["belief"]["version"] == 2
+    assert refused["fused"] is False and refused["belief"]["version"] == 1
 
 
 def test_the_belief_fuses_exactly_the_served_density_boxes_included(two_rooms: dict) -> None:

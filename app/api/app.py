@@ -19,7 +19,14 @@ from app.api.errors import install_error_handlers
 from app.api.limits import BodySizeLimitMiddleware
 from app.api.observability import Metrics, RequestContextMiddleware
 from app.api.routes import ground, health, metrics, models, scene_graphs, sessions
-from app.api.schemas import ObservationBatchJson, PackedArray, SensorModelIn
+from app.api.schemas import (
+    GroundRequest,
+    ObservationBatchJson,
+    PackedArray,
+    SensorModelIn,
+    SessionCreate,
+    UtteranceIn,
+)
 from app.api.services import Sensors, Services, build_sensors
 from app.api.workers import WorkerProcesses
 from app.errors import VLMapError
@@ -35,8 +42,16 @@ DESCRIPTION = (
 )
 
 
-# Bodies that routes read raw (to accept JSON and msgpack) are referenced by hand in their OpenAPI.
-_RAW_BODY_MODELS = (ObservationBatchJson, PackedArray, SensorModelIn)
+# Bodies that routes read themselves (JSON off the event loop, or JSON and msgpack; `app.api.bodies`) are
+# referenced by hand in their OpenAPI.
+_RAW_BODY_MODELS = (
+    GroundRequest,
+    SessionCreate,
+    UtteranceIn,
+    ObservationBatchJson,
+    PackedArray,
+    SensorModelIn,
+)
 
 
 def openapi_with_raw_bodies(app: FastAPI) -> dict[str, Any]:
@@ -116,6 +131,8 @@ def create_app(
         lifespan=lifespan,
         separate_input_output_schemas=False,
         dependencies=[Depends(reject_unknown_query)],
+        # No redirect from /path/ to /path: it was built from the Host header, before any authentication.
+        redirect_slashes=False,
     )
     app.state.services = services
     app.openapi = lambda: openapi_with_raw_bodies(app)  # type: ignore[method-assign]
@@ -123,6 +140,10 @@ def create_app(
     for module in (health, models, metrics, ground, scene_graphs, sessions):
         app.include_router(module.router)
     app.add_middleware(FormAsJsonMiddleware)
-    app.add_middleware(BodySizeLimitMiddleware, max_body_bytes=settings.max_body_bytes)
+    app.add_middleware(
+        BodySizeLimitMiddleware,
+        max_body_bytes=settings.max_body_bytes,
+        body_timeout_s=settings.body_timeout_s,
+    )
     app.add_middleware(RequestContextMiddleware, metrics=services.metrics)  # outermost: sees every answer
     return app

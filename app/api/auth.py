@@ -137,10 +137,13 @@ class KeyRing:
 
 @dataclass
 class RateLimiter:
-    """A token bucket per key: `rate` requests a second on average, bursts up to `burst` (per process)."""
+    """A token bucket per key: `rate` requests a second on average, bursts up to `burst` (per process).
+    A refusal is a LimitExceeded named `limit_name` that says when the next token comes (Retry-After)."""
 
     rate: float
     burst: float
+    limit_name: str = "rate_limit"
+    what: str = "requests"
     _buckets: dict[str, tuple[float, float]] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -153,6 +156,8 @@ class RateLimiter:
             tokens = min(self.burst, tokens + (now - last) * self.rate)
             if tokens < 1.0:
                 self._buckets[name] = (tokens, now)
-                msg = f"key {name!r} exceeded {self.rate:g} requests/s (burst {self.burst:g}); retry shortly"
-                raise LimitExceeded(msg, limit_name="rate_limit")
+                msg = (
+                    f"key {name!r} exceeded {self.rate:g} {self.what}/s (burst {self.burst:g}); retry shortly"
+                )
+                raise LimitExceeded(msg, limit_name=self.limit_name, retry_after_s=(1.0 - tokens) / self.rate)
             self._buckets[name] = (tokens - 1.0, now)

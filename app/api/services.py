@@ -7,19 +7,21 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any, TypeVar
 
+import anyio
 import anyio.to_thread
 from anyio import CapacityLimiter
 
 from app.api.auth import KeyRing, RateLimiter
 from app.api.observability import Metrics
 from app.api.workers import WorkerProcesses
-from app.errors import InvalidInput
+from app.errors import InvalidInput, LimitExceeded
 from app.grounding.geometric import FixedGrounder, GeometricGrounder
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.interfaces import Grounder, HypothesisProposer
@@ -213,17 +215,49 @@ class Services:
     limiter: CapacityLimiter = field(init=False)
     keyring: KeyRing = field(init=False)
     rate_limiter: RateLimiter = field(init=False)
+    # Costly work of its own kinds, each behind its own limit: Spark-DSG binary decodes (a child process
+    # each) and whole-grid downloads (tens of bytes per voxel while encoded).
+    decodes: CapacityLimiter = field(init=False)
+    decode_rate: RateLimiter = field(init=False)
+    grids: CapacityLimiter = field(init=False)
 
     def __post_init__(self) -> None:
-        self.summaries = SummaryCache(watch_s=self.settings.summary_watch_s)
-        self.limiter = CapacityLimiter(self.settings.worker_threads)
-        self.keyring = KeyRing.load(self.settings.api_keys_file, self.settings.api_keys)
-        self.rate_limiter = RateLimiter(self.settings.rate_limit_per_s, self.settings.rate_limit_burst)
+        s = self.settings
+        self.summaries = SummaryCache(watch_s=s.summary_watch_s)
+        self.limiter = CapacityLimiter(s.worker_threads)
+        self.keyring = KeyRing.load(s.api_keys_file, s.api_keys)
+        self.rate_limiter = RateLimiter(s.rate_limit_per_s, s.rate_limit_burst)
+        self.decodes = CapacityLimiter(s.max_concurrent_decodes)
+        self.decode_rate = RateLimiter(
+            s.decode_rate_per_s, s.decode_rate_burst, "decode_rate", "binary decodes"
+        )
+        self.grids = CapacityLimiter(s.max_concurrent_grids)
 
     def open_store(self) -> SessionStore:
         """The store the settings name (the memory store replays its log from data_dir first)."""
         s = self.settings
-        return open_store(s.store, data_dir=s.data_dir, ttl_s=s.session_ttl_s, mirror_mib=s.store_mirror_mib)
+        return open_store(
+            s.store,
+            data_dir=s.data_dir,
+            ttl_s=s.session_ttl_s,
+            mirror_mib=s.store_mirror_mib,
+            idempotency_window_s=s.idempotency_window_s,
+            idempotency_keys=s.idempotency_keys_per_session,
+        )
+
+    @asynccontextmanager
+    async def slot(self, limiter: CapacityLimiter, limit_name: str, what: str) -> AsyncIterator[None]:
+        """Hold one of `limiter`'s slots, waiting up to `busy_wait_s` for one; LimitExceeded (429 with
+        Retry-After) when none frees up in time."""
+        with anyio.move_on_after(self.settings.busy_wait_s) as waited:
+            await limiter.acquire()
+        if waited.cancelled_caught:
+            msg = f"all {limiter.total_tokens:g} slots for {what} are busy; retry shortly"
+            raise LimitExceeded(msg, limit_name=limit_name, retry_after_s=1.0)
+        try:
+            yield
+        finally:
+            limiter.release()
 
     async def run(self, func: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Run CPU-bound work in the worker pool so the event loop keeps serving other requests."""

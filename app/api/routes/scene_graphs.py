@@ -7,11 +7,14 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
 
+from app.api.bodies import media_type
 from app.api.deps import PrincipalDep, ServicesDep, SettingsDep
 from app.api.errors import error_responses
+from app.api.routes.ground import check_scene_graph
 from app.errors import InvalidSceneGraph, UnsupportedMediaType
 from app.scene_graph.loader import SceneGraphFormat, parse_scene_graph
 from app.scene_graph.model import SceneGraph
+from app.settings import Settings
 
 router = APIRouter(prefix="/v1", tags=["scene graphs"])
 
@@ -45,33 +48,47 @@ _REQUEST_BODY = {
     "/scene-graphs/normalize",
     operation_id="normalize_scene_graph",
     response_model=SceneGraph,
-    responses=error_responses(400, 401, 413, 415, 422, 429),
+    responses=error_responses(400, 401, 408, 413, 415, 422, 429),
     openapi_extra={"requestBody": _REQUEST_BODY},
 )
 async def normalize_scene_graph(
     request: Request,
     settings: SettingsDep,
     services: ServicesDep,
-    _: PrincipalDep,
+    principal: PrincipalDep,
     format: Annotated[SceneGraphFormat | None, Query(description="Skip auto-detection.")] = None,
 ) -> SceneGraph:
     """Read a scene graph in any accepted format and return it as a native SceneGraph."""
-    raw = await request.body()
-    content_type = request.headers.get("content-type", "application/json").split(";")[0].strip().lower()
+    content_type = media_type(request)
+    if content_type in _BINARY_TYPES or format is SceneGraphFormat.SPARK_DSG_BINARY:
+        # Each binary decode is a child process (a fraction of a second of CPU, up to a few GiB of address
+        # space): a per-key rate of their own, and a few at a time per process.
+        services.decode_rate.check(principal.name)
+        raw = await request.body()
+        async with services.slot(services.decodes, "max_concurrent_decodes", "Spark-DSG binary decodes"):
+            return await services.run(normalize, raw, True, format, settings)
+    if content_type != "application/json" and not content_type.endswith("+json"):
+        msg = f"unsupported content type {content_type!r}; send application/json or application/octet-stream"
+        raise UnsupportedMediaType(msg, field="content-type")
+    return await services.run(normalize, await request.body(), False, format, settings)
+
+
+def normalize(raw: bytes, binary: bool, fmt: SceneGraphFormat | None, settings: Settings) -> SceneGraph:
+    """The body as a native scene graph within the limits: binary bytes as they are, JSON decoded first."""
     payload: bytes | dict
-    if content_type in _BINARY_TYPES:
+    if binary:
         payload = raw
-    elif content_type == "application/json" or content_type.endswith("+json"):
+    else:
         try:
             decoded = json.loads(raw)
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            msg = f"body is not valid JSON: {exc}"
+        except RecursionError as exc:
+            msg = "body is not valid JSON: nested too deeply"
+            raise InvalidSceneGraph(msg, field="body") from exc
+        except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError, int() refusing too many digits
+            msg = f"body is not valid JSON: {str(exc)[:200]}"
             raise InvalidSceneGraph(msg, field="body") from exc
         if not isinstance(decoded, dict):
             msg = "a JSON scene graph must be an object"
             raise InvalidSceneGraph(msg, field="body")
         payload = decoded
-    else:
-        msg = f"unsupported content type {content_type!r}; send application/json or application/octet-stream"
-        raise UnsupportedMediaType(msg, field="content-type")
-    return await services.run(parse_scene_graph, payload, format, settings.max_objects)
+    return check_scene_graph(parse_scene_graph(payload, fmt, settings.max_objects), settings, "body")

@@ -6,25 +6,35 @@ log(p_GMM(c_i) V) to lang and each observed voxel adds a log-likelihood ratio to
 
 from __future__ import annotations
 
+import json
+import math
 from collections.abc import Callable
 from functools import partial
 from typing import Annotated, Any
 
-import msgpack
 import numpy as np
 from fastapi import APIRouter, Header, Query, Request, Response
-from pydantic import ValidationError
+from pydantic import TypeAdapter
 
 from app.api.auth import Principal
+from app.api.bodies import JsonBody, json_request_body, media_type, schema_ref, validate_json
 from app.api.deps import PrincipalDep, SensorsDep, ServicesDep, SettingsDep, StoreDep
-from app.api.errors import error_responses, field_path
-from app.api.routes.ground import caller_hypotheses, resolve_scene_graph, to_response
+from app.api.errors import error_responses
+from app.api.idempotency import IdempotencyKeyHeader, idempotency_of, replay, session_id_for, with_answer
+from app.api.routes.ground import (
+    caller_hypotheses,
+    check_coordinates,
+    resolve_scene_graph,
+    scene_graph_payload_schema,
+    to_response,
+)
 from app.api.schemas import (
     ROBOT_ID_PATTERN,
     BeliefOut,
     GridOut,
     GridSpec,
     GroundOptions,
+    GroundResponse,
     ObservationBatchJson,
     ObservationOut,
     PosteriorSummaryOut,
@@ -36,21 +46,41 @@ from app.api.schemas import (
     UtteranceOut,
 )
 from app.api.services import Services, SummaryCache
-from app.api.wire import MSGPACK_TYPES, ObservationBatch, check_batch_size, decode_msgpack_batch, pack_array
+from app.api.wire import (
+    MSGPACK_TYPES,
+    ObservationBatch,
+    check_batch_size,
+    decode_msgpack_batch,
+    encode_belief_grid,
+)
 from app.belief.grid import VoxelGrid
-from app.belief.session import SensorModel, SessionInfo, UpdateResult, check_target_label, new_session
-from app.errors import InvalidInput, LimitExceeded, UnsupportedMediaType
+from app.belief.session import (
+    LabelNames,
+    SensorModel,
+    SessionInfo,
+    UpdateResult,
+    check_target_label,
+    new_session,
+)
+from app.belief.summary import place_voxels
+from app.errors import AlreadyApplied, InvalidInput, LimitExceeded, UnsupportedMediaType
 from app.grounding.sensor import Grounding, LanguageSensor
 from app.scene_graph.model import SceneGraph
 from app.settings import Settings
-from app.stores.base import SessionStore
+from app.stores.base import Idempotency, SessionStore
 from app.vocabulary import head_noun, lemmas, lexical_match, object_nouns
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
 _AUTH_ERRORS = (401, 403, 429)
-_WRITE_ERRORS = error_responses(400, *_AUTH_ERRORS, 404, 413, 422, 503)
+_WRITE_ERRORS = error_responses(400, *_AUTH_ERRORS, 404, 408, 413, 415, 422, 503)
 _READ_ERRORS = error_responses(*_AUTH_ERRORS, 404, 422, 503)
+_REPLAYED = {
+    "Idempotent-Replayed": {
+        "description": "true when this answers a request repeated with its Idempotency-Key.",
+        "schema": {"type": "string", "enum": ["true"]},
+    }
+}
 
 _OBSERVATION_BODY = {
     "required": True,
@@ -136,67 +166,105 @@ def etag(version: int) -> str:
 
 def _grid(spec: GridSpec | None, scene_graph: SceneGraph, settings: Settings) -> VoxelGrid:
     spec = spec or GridSpec()
-    if (spec.min_corner is None) != (spec.max_corner is None):
-        msg = "give both min_corner and max_corner, or neither"
-        raise InvalidInput(msg, field="grid.min_corner")
-    if spec.min_corner is None:
+    low_corner, high_corner = spec.min_corner, spec.max_corner
+    if low_corner is None and high_corner is None:
         return VoxelGrid.around(
             scene_graph, voxel_size=spec.voxel_size, margin=spec.margin, max_voxels=settings.max_grid_voxels
         )
-    low, high = np.asarray(spec.min_corner, dtype=np.float64), np.asarray(spec.max_corner, dtype=np.float64)
-    if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(high > low)):
-        msg = "max_corner must be finite and above min_corner on every axis"
+    if low_corner is None or high_corner is None:
+        msg = "give both min_corner and max_corner, or neither"
+        raise InvalidInput(msg, field="grid.min_corner")
+    check_coordinates("grid.min_corner", [low_corner], settings)
+    check_coordinates("grid.max_corner", [high_corner], settings)
+    low, high = np.asarray(low_corner, dtype=np.float64), np.asarray(high_corner, dtype=np.float64)
+    if not np.all(high > low):
+        msg = "max_corner must be above min_corner on every axis"
         raise InvalidInput(msg, field="grid.max_corner")
-    shape = np.ceil((high - low) / spec.voxel_size).astype(np.int64)
-    if float(np.prod(shape.astype(np.float64))) > settings.max_grid_voxels:
-        msg = f"the grid needs {int(np.prod(shape))} voxels, more than the limit {settings.max_grid_voxels}"
+    shape = [math.ceil(float(extent) / spec.voxel_size) for extent in high - low]  # Python ints: no overflow
+    if math.prod(shape) > settings.max_grid_voxels:
+        msg = f"the grid needs {math.prod(shape):,} voxels, more than the limit {settings.max_grid_voxels:,}"
         raise LimitExceeded(msg, limit_name="max_grid_voxels")
-    nx, ny, nz = (int(s) for s in shape)
+    nx, ny, nz = shape
     return VoxelGrid(origin=tuple(low), shape=(nx, ny, nz), voxel_size=spec.voxel_size)
 
 
-def _label_map(raw: dict[str, str] | None) -> dict[int, str]:
+def _label_map(raw: dict[str, str] | None, settings: Settings) -> dict[int, str]:
+    """The label map with integer ids (the schema has checked that each key is 1-10 ASCII digits)."""
+    if raw is not None and len(raw) > settings.max_label_map_entries:
+        msg = f"{len(raw)} entries exceed the limit of {settings.max_label_map_entries}"
+        raise LimitExceeded(f"label_map: {msg}", limit_name="max_label_map_entries")
     out: dict[int, str] = {}
     for key, name in (raw or {}).items():
-        if not key.isdigit() or len(key) > 9:
-            msg = f"label ids must be non-negative integers, got {key!r}"
+        if int(key) >= 2**32:
+            msg = f"label ids are uint32 (below 4294967296), got {key}"
             raise InvalidInput(msg, field=f"label_map.{key}")
         out[int(key)] = name
     return out
 
 
-def create(body: SessionCreate, store: SessionStore, settings: Settings) -> SessionOut:
+def check_places(grid: VoxelGrid, scene_graph: SceneGraph, settings: Settings) -> None:
+    """LimitExceeded unless the voxels of the scene graph's places on `grid` are within the limit: every
+    summary of the session sums the belief over them."""
+    total = place_voxels(grid, scene_graph)
+    if total > settings.max_place_voxels:
+        msg = (
+            f"the scene graph's objects and regions cover {total:,} voxels of the grid (summed over them), "
+            f"more than the limit {settings.max_place_voxels:,}; use larger voxels or fewer, smaller boxes"
+        )
+        raise LimitExceeded(msg, limit_name="max_place_voxels")
+
+
+def create(
+    body: SessionCreate,
+    store: SessionStore,
+    settings: Settings,
+    idempotency: Idempotency | None,
+    response: Response,
+) -> SessionOut:
     scene_graph = resolve_scene_graph(body.scene_graph, settings)
-    if len(store.list(body.robot_id)) >= settings.max_sessions_per_robot:
-        limit = settings.max_sessions_per_robot
-        msg = f"robot {body.robot_id!r} already has {limit} sessions; delete one first"
-        raise LimitExceeded(msg, limit_name="max_sessions_per_robot")
     sensor = body.sensor_model
+    grid = _grid(body.grid, scene_graph, settings)
+    check_places(grid, scene_graph, settings)
     session = new_session(
         body.robot_id,
         scene_graph,
         body.target_label or "",
-        label_map=_label_map(body.label_map),
+        label_map=_label_map(body.label_map, settings),
         sensor_model=SensorModel(sensor.tp, sensor.fp) if sensor else None,
-        grid=_grid(body.grid, scene_graph, settings),
+        grid=grid,
         max_voxels=settings.max_grid_voxels,
+        session_id=session_id_for(body.robot_id, idempotency) if idempotency is not None else None,
     )
-    return session_out(store.create(session))
+    try:
+        info = store.create(session, max_per_robot=settings.max_sessions_per_robot, idempotency=idempotency)
+    except AlreadyApplied as exc:
+        replay(exc.record, idempotency, response)
+        info = store.info(session.id)
+    return session_out(info)
 
 
 @router.post(
-    "", operation_id="create_session", status_code=201, response_model=SessionOut, responses=_WRITE_ERRORS
+    "",
+    operation_id="create_session",
+    status_code=201,
+    response_model=SessionOut,
+    responses={**_WRITE_ERRORS, 201: {"description": "Successful Response", "headers": _REPLAYED}},
+    openapi_extra={"requestBody": json_request_body(schema_ref("SessionCreate"))},
 )
 async def create_session(
-    body: SessionCreate,
+    request: Request,
+    response: Response,
+    body: Annotated[SessionCreate, JsonBody(SessionCreate)],
     principal: PrincipalDep,
     store: StoreDep,
     settings: SettingsDep,
     services: ServicesDep,
+    idempotency_key: IdempotencyKeyHeader = None,
 ) -> SessionOut:
     """Start a belief for a robot: a uniform prior over a voxel grid around its scene graph."""
     principal.require_write(body.robot_id)
-    return await services.run(create, body, store, settings)
+    idempotency = idempotency_of(request, idempotency_key, await request.body())
+    return await services.run(create, body, store, settings, idempotency, response)
 
 
 @router.get("", operation_id="list_sessions", response_model=SessionList, responses=_READ_ERRORS)
@@ -236,25 +304,52 @@ async def get_session(
     return session_out(await services.run(_readable, store, principal, session_id))
 
 
-def delete(store: SessionStore, principal: Principal, session_id: str) -> None:
-    _writable(store, principal, session_id)
-    store.delete(session_id)
+def delete(
+    store: SessionStore, principal: Principal, session_id: str, idempotency: Idempotency | None
+) -> Response:
+    response = Response(status_code=204)
+    try:
+        store.delete(session_id, authorize=principal.require_write, idempotency=idempotency)
+    except AlreadyApplied as exc:
+        replay(exc.record, idempotency, response)
+    return response
 
 
-@router.delete("/{session_id}", operation_id="delete_session", status_code=204, responses=_READ_ERRORS)
+@router.delete(
+    "/{session_id}",
+    operation_id="delete_session",
+    status_code=204,
+    responses={**_READ_ERRORS, 204: {"description": "Successful Response", "headers": _REPLAYED}},
+)
 async def delete_session(
-    session_id: str, principal: PrincipalDep, store: StoreDep, services: ServicesDep
+    request: Request,
+    session_id: str,
+    principal: PrincipalDep,
+    store: StoreDep,
+    services: ServicesDep,
+    idempotency_key: IdempotencyKeyHeader = None,
 ) -> Response:
     """Delete a session and its belief."""
-    await services.run(delete, store, principal, session_id)
-    return Response(status_code=204)
+    idempotency = idempotency_of(request, idempotency_key, b"")
+    return await services.run(delete, store, principal, session_id, idempotency)
 
 
 def replace_scene_graph(
-    store: SessionStore, principal: Principal, session_id: str, payload: object, settings: Settings
+    store: SessionStore,
+    principal: Principal,
+    session_id: str,
+    payload: object,
+    settings: Settings,
+    idempotency: Idempotency | None,
+    response: Response,
 ) -> SessionOut:
-    _writable(store, principal, session_id)
-    store.replace_scene_graph(session_id, resolve_scene_graph(payload, settings))  # type: ignore[arg-type]
+    info = _writable(store, principal, session_id)
+    scene_graph = resolve_scene_graph(payload, settings)  # type: ignore[arg-type]
+    check_places(info.grid, scene_graph, settings)
+    try:
+        store.replace_scene_graph(session_id, scene_graph, idempotency=idempotency)
+    except AlreadyApplied as exc:
+        replay(exc.record, idempotency, response)
     return session_out(store.info(session_id))
 
 
@@ -262,18 +357,25 @@ def replace_scene_graph(
     "/{session_id}/scene-graph",
     operation_id="replace_scene_graph",
     response_model=SessionOut,
-    responses=_WRITE_ERRORS,
+    responses={**_WRITE_ERRORS, 200: {"description": "Successful Response", "headers": _REPLAYED}},
+    openapi_extra={"requestBody": json_request_body(scene_graph_payload_schema())},
 )
 async def put_scene_graph(
+    request: Request,
+    response: Response,
     session_id: str,
-    scene_graph: SceneGraphPayload,
+    scene_graph: Annotated[object, JsonBody(SceneGraphPayload)],
     principal: PrincipalDep,
     store: StoreDep,
     settings: SettingsDep,
     services: ServicesDep,
+    idempotency_key: IdempotencyKeyHeader = None,
 ) -> SessionOut:
     """Replace the session's scene graph (Hydra keeps mapping); later utterances ground in the new one."""
-    return await services.run(replace_scene_graph, store, principal, session_id, scene_graph, settings)
+    idempotency = idempotency_of(request, idempotency_key, await request.body())
+    return await services.run(
+        replace_scene_graph, store, principal, session_id, scene_graph, settings, idempotency, response
+    )
 
 
 def utterance_context(
@@ -307,18 +409,31 @@ def utterance_verdict(target_label: str, result: Grounding) -> tuple[bool, str |
 
 
 def fuse_utterance(
-    store: SessionStore, cache: SummaryCache, info: SessionInfo, result: Grounding, sensor: LanguageSensor
+    store: SessionStore,
+    cache: SummaryCache,
+    info: SessionInfo,
+    result: Grounding,
+    sensor: LanguageSensor,
+    idempotency: Idempotency | None,
+    response: Response,
 ) -> UtteranceOut:
     """Add an utterance to the belief unless `utterance_verdict` refuses it; while the session has no target
-    class, the utterance's target phrase names it."""
+    class, the utterance's target phrase names it (in the same update)."""
     fused, reason = utterance_verdict(info.target_label, result)
-    if fused:
-        store.apply_utterance(info.id, result.mixture)
-        target = result.proposal.parse.target
-        if not info.target_label and target and names_a_class(target, info.label_map):
-            store.set_target_label(info.id, target)
-    belief = belief_out(store, cache, info.id)
     grounding = to_response(result, sensor, None)
+    if fused:
+        target = result.proposal.parse.target
+        names = target if not info.target_label and target and names_a_class(target, info.label_map) else None
+        # What the answer says besides the belief: remembered with the key, so that a retry repeats it.
+        answer = json.dumps({"grounding": grounding.model_dump(mode="json"), "reason": reason}).encode()
+        try:
+            store.apply_utterance(
+                info.id, result.mixture, target_label=names, idempotency=with_answer(idempotency, answer)
+            )
+        except AlreadyApplied as exc:
+            first = json.loads(replay(exc.record, idempotency, response).answer)
+            grounding, reason = GroundResponse.model_validate(first["grounding"]), first["reason"]
+    belief = belief_out(store, cache, info.id)
     return UtteranceOut(grounding=grounding, belief=belief, fused=fused, reason=reason)
 
 
@@ -326,40 +441,45 @@ def fuse_utterance(
     "/{session_id}/utterances",
     operation_id="add_utterance",
     response_model=UtteranceOut,
-    responses=_WRITE_ERRORS,
+    responses={**_WRITE_ERRORS, 200: {"description": "Successful Response", "headers": _REPLAYED}},
+    openapi_extra={"requestBody": json_request_body(schema_ref("UtteranceIn"))},
 )
 async def post_utterance(
+    request: Request,
+    response: Response,
     session_id: str,
-    body: UtteranceIn,
+    body: Annotated[UtteranceIn, JsonBody(UtteranceIn)],
     principal: PrincipalDep,
     store: StoreDep,
     sensors: SensorsDep,
     services: ServicesDep,
+    idempotency_key: IdempotencyKeyHeader = None,
 ) -> UtteranceOut:
     """Ground an utterance in the session's scene graph and fuse it unless its target is another class."""
+    idempotency = idempotency_of(request, idempotency_key, await request.body())
     options = body.options or GroundOptions()
     info, scene_graph = await services.run(utterance_context, store, principal, session_id)
     result, sensor = await services.ground(
         sensors, options.grounder, options.proposer, scene_graph, body.utterance, caller_hypotheses(options)
     )
-    return await services.run(fuse_utterance, store, services.summaries, info, result, sensor)
+    return await services.run(
+        fuse_utterance, store, services.summaries, info, result, sensor, idempotency, response
+    )
 
 
-def decode_json_batch(raw: bytes, max_voxels: int) -> ObservationBatch:
-    try:
-        body = ObservationBatchJson.model_validate_json(raw)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        field = field_path(first["loc"]) or "body"
-        msg = f"{first['msg']}"
-        raise InvalidInput(msg, field=field) from exc
+_JSON_BATCH = TypeAdapter(ObservationBatchJson)
+
+
+def decode_json_batch(raw: bytes, max_voxels: int, max_errors: int) -> ObservationBatch:
+    body = validate_json(_JSON_BATCH, raw, max_errors)
     n = len(body.voxels or body.points or [])
     check_batch_size(max(n, len(body.labels or body.p_target or [])), max_voxels)
-    labels = None
+    labels: np.ndarray | LabelNames | None = None
     if body.labels is not None:
-        labels = np.asarray(body.labels) if body.labels else np.zeros(0, dtype=np.int64)
-        if labels.dtype.kind == "i":
-            labels = labels.astype(np.int64)
+        if body.labels and isinstance(body.labels[0], str):
+            labels = LabelNames.of(body.labels)
+        else:
+            labels = np.asarray(body.labels, dtype=np.int64)
     return ObservationBatch(
         stamp=body.stamp,
         voxels=np.asarray(body.voxels, dtype=np.int64).reshape(-1, 3) if body.voxels is not None else None,
@@ -379,7 +499,12 @@ INLINE_BATCH_BYTES = 256 << 10
 
 
 def batch_update(
-    store: SessionStore, principal: Principal, session_id: str, batch: ObservationBatch, on_loop: bool
+    store: SessionStore,
+    principal: Principal,
+    session_id: str,
+    batch: ObservationBatch,
+    on_loop: bool,
+    idempotency: Idempotency | None,
 ) -> Callable[[], Any]:
     """The store call that fuses the batch (its event-loop method if `on_loop`). The store checks the caller's
     right to write against the state it updates, and counts voxels outside the grid."""
@@ -387,6 +512,7 @@ def batch_update(
         "points": batch.points,
         "voxels": batch.voxels,
         "authorize": principal.require_write,
+        "idempotency": idempotency,
     }
     if batch.p_target is not None:
         detections = store.apply_detections_async if on_loop else store.apply_detections
@@ -424,12 +550,16 @@ async def observation_out(
     "/{session_id}/observations",
     operation_id="add_observations",
     response_model=ObservationOut,
-    responses=error_responses(400, *_AUTH_ERRORS, 404, 409, 413, 415, 422, 503),
+    responses={
+        **error_responses(400, *_AUTH_ERRORS, 404, 408, 409, 413, 415, 422, 503),
+        200: {"description": "Successful Response", "headers": _REPLAYED},
+    },
     openapi_extra={"requestBody": _OBSERVATION_BODY},
 )
 async def post_observations(
     session_id: str,
     request: Request,
+    response: Response,
     principal: PrincipalDep,
     store: StoreDep,
     settings: SettingsDep,
@@ -438,45 +568,46 @@ async def post_observations(
         bool,
         Query(description="Return the posterior summary (false: just the version, for sensor-rate streams)."),
     ] = True,
+    idempotency_key: IdempotencyKeyHeader = None,
 ) -> ObservationOut:
     """Fuse one batch of semantic observations (JSON or msgpack) and return the posterior summary."""
-    raw = await request.body()
-    content_type = request.headers.get("content-type", "application/json").split(";")[0].strip().lower()
-    decode: Callable[[bytes, int], ObservationBatch]
+    content_type = media_type(request)
+    decode: Callable[[bytes], ObservationBatch]
     if content_type in MSGPACK_TYPES:
-        decode = decode_msgpack_batch
+        decode = partial(decode_msgpack_batch, max_voxels=settings.max_batch_voxels)
     elif content_type == "application/json":
-        decode = decode_json_batch
+        decode = partial(
+            decode_json_batch, max_voxels=settings.max_batch_voxels, max_errors=settings.max_validation_errors
+        )
     else:
         msg = f"unsupported content type {content_type!r}: send application/json or application/msgpack"
         raise UnsupportedMediaType(msg, field="content-type")
+    raw = await request.body()
+    idempotency = idempotency_of(request, idempotency_key, raw)
 
-    if decode is decode_msgpack_batch and len(raw) <= INLINE_BATCH_BYTES:
-        batch = decode(raw, settings.max_batch_voxels)
-        result = await batch_update(store, principal, session_id, batch, on_loop=True)()
-    else:
-        # One trip to a worker thread, not two.
-        def decode_and_fuse() -> tuple[ObservationBatch, UpdateResult]:
-            batch = decode(raw, settings.max_batch_voxels)
-            return batch, batch_update(store, principal, session_id, batch, on_loop=False)()
+    try:
+        if content_type in MSGPACK_TYPES and len(raw) <= INLINE_BATCH_BYTES:
+            batch = decode(raw)
+            result = await batch_update(store, principal, session_id, batch, True, idempotency)()
+        else:
+            # One trip to a worker thread, not two.
+            def decode_and_fuse() -> tuple[ObservationBatch, UpdateResult]:
+                batch = decode(raw)
+                return batch, batch_update(store, principal, session_id, batch, False, idempotency)()
 
-        batch, result = await services.run(decode_and_fuse)
+            batch, result = await services.run(decode_and_fuse)
+    except AlreadyApplied as exc:
+        first = replay(exc.record, idempotency, response)
+        batch = decode(raw)  # the same body: its stamp is the answer's
+        result = UpdateResult(session_id, first.version, first.voxels_updated, first.voxels_outside)
     return await observation_out(store, services, session_id, batch, result, summary)
 
 
-def belief_grid(store: SessionStore, info: SessionInfo, layers: bool) -> tuple[bytes, int]:
+def belief_grid(store: SessionStore, info: SessionInfo, layers: bool) -> tuple[memoryview, int]:
     """The whole posterior (and layers) as msgpack, with the version it belongs to."""
     state = store.read_layers(info.id)
-    payload = {
-        "session_id": info.id,
-        "version": state.version,
-        "grid": state.grid.to_dict(),
-        "posterior": pack_array(state.posterior().astype(np.float32)),
-    }
-    if layers:
-        payload["lang"] = pack_array(state.lang)
-        payload["vis"] = pack_array(state.vis)
-    return msgpack.packb(payload, use_bin_type=True), state.version
+    data = encode_belief_grid(info.id, state.version, state.grid.to_dict(), state.lang, state.vis, layers)
+    return data, state.version
 
 
 def read_belief(
@@ -540,4 +671,7 @@ async def get_belief(
     ready = cache.get((session_id, version, top_k)) if format == "summary" else None
     if ready is not None:
         return Response(ready.model_dump_json(), media_type="application/json", headers={"ETag": tag})
+    if format == "grid":  # tens of bytes per voxel while encoded: a few at a time
+        async with services.slot(services.grids, "max_concurrent_grids", "whole-grid downloads"):
+            return await services.run(read_belief, store, cache, principal, session_id, format, layers, top_k)
     return await services.run(read_belief, store, cache, principal, session_id, format, layers, top_k)

@@ -1,0 +1,77 @@
+"""The Idempotency-Key request header (IETF httpapi draft "The Idempotency-Key HTTP Header Field").
+
+Every state-changing session endpoint takes one. The key is remembered with the change it came with, in the
+same store write (`app.stores.base`), so that a request repeated after its answer was lost (a timeout, a
+replica killed mid-request, a Redis failover) is applied once:
+
+- the same key with the same request (method, path, content type and body) is answered as the first time,
+  with `Idempotent-Replayed: true`; what the answer embeds of the session's current state (its metadata, the
+  belief summary) is read anew;
+- the same key with another request is a 422 (`idempotency_key_reused`);
+- a key is remembered by its session for `idempotency_window_s`, and for its last
+  `idempotency_keys_per_session` keys.
+
+A key is 1-255 printable ASCII characters; the draft's quoted form ("...", a structured-field string) and
+a bare token are the same key.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import uuid
+from typing import Annotated
+
+from fastapi import Header, Request, Response
+
+from app.errors import IdempotencyKeyReused, InvalidInput
+from app.stores.base import Idempotency, IdempotencyRecord
+
+REPLAYED_HEADER = "Idempotent-Replayed"
+
+IdempotencyKeyHeader = Annotated[
+    str | None,
+    Header(
+        alias="Idempotency-Key",
+        description="Makes the request safe to retry: a request repeated with the same key (and body) is "
+        "applied once and answered as the first time; the same key with another body is a 422. 1-255 "
+        "printable ASCII characters, e.g. a UUID.",
+    ),
+]
+
+
+def idempotency_of(request: Request, key: str | None, body: bytes, answer: bytes = b"") -> Idempotency | None:
+    """The request's `Idempotency` (None without a key): the key, and the fingerprint of the request."""
+    if key is None:
+        return None
+    text = key.strip()
+    if len(text) >= 2 and text[0] == text[-1] == '"':
+        text = text[1:-1]
+    if not (0 < len(text) <= 255 and text.isascii() and text.isprintable()):
+        msg = "an Idempotency-Key is 1-255 printable ASCII characters"
+        raise InvalidInput(msg, field="Idempotency-Key")
+    digest = hashlib.sha256()
+    for part in (request.method, request.url.path, request.headers.get("content-type", "")):
+        digest.update(part.encode("latin-1", "replace") + b"\0")
+    digest.update(body)
+    return Idempotency(text, digest.hexdigest()[:32], answer)
+
+
+def with_answer(idempotency: Idempotency | None, answer: bytes) -> Idempotency | None:
+    return None if idempotency is None else Idempotency(idempotency.key, idempotency.fingerprint, answer)
+
+
+def replay(record: object, idempotency: Idempotency | None, response: Response) -> IdempotencyRecord:
+    """The record of the request that first used this key, once it is the same request (else a 422); marks
+    the answer as a replay."""
+    assert isinstance(record, IdempotencyRecord) and idempotency is not None  # only keyed changes replay
+    if record.fingerprint != idempotency.fingerprint:
+        msg = "this Idempotency-Key was used with another request; use a new key for a new request"
+        raise IdempotencyKeyReused(msg, field="Idempotency-Key")
+    response.headers[REPLAYED_HEADER] = "true"
+    return record
+
+
+def session_id_for(robot_id: str, idempotency: Idempotency) -> str:
+    """The id a keyed creation gives its session: the same for a retry, so that the store finds it."""
+    digest = hashlib.sha256(f"{robot_id}\0{idempotency.key}".encode()).digest()
+    return uuid.UUID(bytes=digest[:16]).hex
