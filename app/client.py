@@ -3,6 +3,11 @@
 Numpy arrays in, msgpack on the wire for observation batches; JSON for everything else. Every non-2xx
 answer raises `VLMapHTTPError` carrying the service's error code, message and field.
 
+Retries: every call that changes a session carries an `Idempotency-Key` (a fresh UUID per call unless the
+caller gives one), so every call can be repeated safely: one whose connection failed or timed out, or that
+got a 429, 502, 503 or 504, is sent again with the same key up to `retries` times (after Retry-After when
+the service gives one, else an exponential backoff), and the service applies it once.
+
     with VLMapClient("http://127.0.0.1:8000", api_key=KEY) as vl:
         session = vl.create_session("robot-7", scene_graph)
         vl.send_utterance(session["id"], "I left my backpack on the table")
@@ -12,6 +17,10 @@ answer raises `VLMapHTTPError` carrying the service's error code, message and fi
 
 from __future__ import annotations
 
+import asyncio
+import random
+import time
+import uuid
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,6 +46,29 @@ class Request:
     method: str
     path: str
     kwargs: dict[str, Any]
+
+
+#: Answers after which the same request (with its Idempotency-Key) may succeed.
+RETRIED_STATUSES = frozenset({429, 502, 503, 504})
+#: Longest pause between two attempts (seconds), whatever Retry-After says.
+MAX_PAUSE_S = 10.0
+
+
+def _keyed(key: str | None, **kwargs: Any) -> dict[str, Any]:
+    """Request arguments with an Idempotency-Key header (a fresh one unless given)."""
+    headers = {**kwargs.pop("headers", {}), "Idempotency-Key": key or uuid.uuid4().hex}
+    return {**kwargs, "headers": headers}
+
+
+def _pause(attempt: int, backoff_s: float, response: httpx.Response | None) -> float:
+    """Seconds to wait before attempt `attempt + 1`: Retry-After when the service gave one, else an
+    exponential backoff with jitter."""
+    if response is not None:
+        try:
+            return min(MAX_PAUSE_S, float(response.headers.get("retry-after", "")))
+        except ValueError:
+            pass
+    return min(MAX_PAUSE_S, backoff_s * 2**attempt) * random.uniform(0.5, 1.0)
 
 
 @dataclass(frozen=True)
@@ -66,13 +98,13 @@ class _Calls:
         )
 
     @staticmethod
-    def create_session(robot_id: str, scene_graph: Any, **fields: Any) -> Request:
+    def create_session(robot_id: str, scene_graph: Any, key: str | None = None, **fields: Any) -> Request:
         body = {
             "robot_id": robot_id,
             "scene_graph": scene_graph,
             **{k: v for k, v in fields.items() if v is not None},
         }
-        return Request("POST", "/v1/sessions", {"json": body})
+        return Request("POST", "/v1/sessions", _keyed(key, json=body))
 
     @staticmethod
     def list_sessions(robot_id: str | None) -> Request:
@@ -83,24 +115,27 @@ class _Calls:
         return Request("GET", f"/v1/sessions/{session_id}", {})
 
     @staticmethod
-    def delete_session(session_id: str) -> Request:
-        return Request("DELETE", f"/v1/sessions/{session_id}", {})
+    def delete_session(session_id: str, key: str | None = None) -> Request:
+        return Request("DELETE", f"/v1/sessions/{session_id}", _keyed(key))
 
     @staticmethod
-    def replace_scene_graph(session_id: str, scene_graph: Any) -> Request:
-        return Request("PUT", f"/v1/sessions/{session_id}/scene-graph", {"json": scene_graph})
+    def replace_scene_graph(session_id: str, scene_graph: Any, key: str | None = None) -> Request:
+        return Request("PUT", f"/v1/sessions/{session_id}/scene-graph", _keyed(key, json=scene_graph))
 
     @staticmethod
-    def send_utterance(session_id: str, utterance: str, options: dict[str, Any] | None) -> Request:
+    def send_utterance(
+        session_id: str, utterance: str, options: dict[str, Any] | None, key: str | None = None
+    ) -> Request:
         body = {"utterance": utterance, **({"options": options} if options else {})}
-        return Request("POST", f"/v1/sessions/{session_id}/utterances", {"json": body})
+        return Request("POST", f"/v1/sessions/{session_id}/utterances", _keyed(key, json=body))
 
     @staticmethod
-    def send_observations(session_id: str, summary: bool = True, **batch: Any) -> Request:
-        kwargs: dict[str, Any] = {
-            "content": encode_msgpack_batch(**batch),
-            "headers": {"content-type": "application/msgpack"},
-        }
+    def send_observations(
+        session_id: str, summary: bool = True, key: str | None = None, **batch: Any
+    ) -> Request:
+        kwargs: dict[str, Any] = _keyed(
+            key, content=encode_msgpack_batch(**batch), headers={"content-type": "application/msgpack"}
+        )
         if not summary:
             kwargs["params"] = {"summary": "false"}
         return Request("POST", f"/v1/sessions/{session_id}/observations", kwargs)
@@ -164,24 +199,46 @@ def _headers(api_key: str | None) -> dict[str, str]:
 
 
 class VLMapClient:
-    """Blocking client (httpx); one connection pool, reused across calls."""
+    """Blocking client (httpx); one connection pool, reused across calls. `retries`: attempts after the
+    first for a call whose connection failed or that got a retryable status (module docstring)."""
 
     def __init__(
-        self, base_url: str, api_key: str | None = None, timeout_s: float = 30.0, **httpx_kwargs: Any
+        self,
+        base_url: str,
+        api_key: str | None = None,
+        timeout_s: float = 30.0,
+        retries: int = 4,
+        backoff_s: float = 0.2,
+        **httpx_kwargs: Any,
     ):
         self.http = httpx.Client(
             base_url=base_url, headers=_headers(api_key), timeout=timeout_s, **httpx_kwargs
         )
+        self.retries, self.backoff_s = retries, backoff_s
 
     def _send(self, call: Request) -> httpx.Response:
-        return self.http.request(call.method, call.path, **call.kwargs)
+        attempt = 0
+        while True:
+            response = None
+            try:
+                response = self.http.request(call.method, call.path, **call.kwargs)
+            except httpx.TransportError:
+                if attempt >= self.retries:
+                    raise
+            else:
+                if response.status_code not in RETRIED_STATUSES or attempt >= self.retries:
+                    return response
+            time.sleep(_pause(attempt, self.backoff_s, response))
+            attempt += 1
 
     def ground(self, scene_graph: Any, utterance: str, **extra: Any) -> dict[str, Any]:
         return _json(self._send(_Calls.ground(scene_graph, utterance, **extra)))
 
-    def create_session(self, robot_id: str, scene_graph: Any, **fields: Any) -> dict[str, Any]:
+    def create_session(
+        self, robot_id: str, scene_graph: Any, idempotency_key: str | None = None, **fields: Any
+    ) -> dict[str, Any]:
         """fields: grid, target_label, sensor_model, label_map (see the OpenAPI's SessionCreate)."""
-        return _json(self._send(_Calls.create_session(robot_id, scene_graph, **fields)))
+        return _json(self._send(_Calls.create_session(robot_id, scene_graph, idempotency_key, **fields)))
 
     def list_sessions(self, robot_id: str | None = None) -> list[dict[str, Any]]:
         return _json(self._send(_Calls.list_sessions(robot_id)))["sessions"]
@@ -189,24 +246,36 @@ class VLMapClient:
     def get_session(self, session_id: str) -> dict[str, Any]:
         return _json(self._send(_Calls.get_session(session_id)))
 
-    def delete_session(self, session_id: str) -> None:
-        _json(self._send(_Calls.delete_session(session_id)))
+    def delete_session(self, session_id: str, idempotency_key: str | None = None) -> None:
+        _json(self._send(_Calls.delete_session(session_id, idempotency_key)))
 
-    def replace_scene_graph(self, session_id: str, scene_graph: Any) -> dict[str, Any]:
-        return _json(self._send(_Calls.replace_scene_graph(session_id, scene_graph)))
+    def replace_scene_graph(
+        self, session_id: str, scene_graph: Any, idempotency_key: str | None = None
+    ) -> dict[str, Any]:
+        return _json(self._send(_Calls.replace_scene_graph(session_id, scene_graph, idempotency_key)))
 
-    def send_utterance(self, session_id: str, utterance: str, options: dict[str, Any] | None = None) -> dict:
+    def send_utterance(
+        self,
+        session_id: str,
+        utterance: str,
+        options: dict[str, Any] | None = None,
+        idempotency_key: str | None = None,
+    ) -> dict:
         """The service's answer as a dict: "grounding", "belief", "fused" (false: the utterance was about
         another class than the session's target and left the belief as it was) and "reason" (why not fused,
         or why only the broad prior of an ungrounded utterance was; None otherwise)."""
-        return _json(self._send(_Calls.send_utterance(session_id, utterance, options)))
+        return _json(self._send(_Calls.send_utterance(session_id, utterance, options, idempotency_key)))
 
-    def send_observations(self, session_id: str, summary: bool = True, **batch: Any) -> dict[str, Any]:
+    def send_observations(
+        self, session_id: str, summary: bool = True, idempotency_key: str | None = None, **batch: Any
+    ) -> dict[str, Any]:
         """batch: voxels (N,3) or points (N,3); labels (N,) ids or names, or p_target (N,); stamp, tp, fp.
 
         summary=False leaves the posterior summary out of the answer (sensor-rate streams poll it apart).
+        The batch is sent with an Idempotency-Key (`idempotency_key`, else a fresh one) and retried with it.
         """
-        return _json(self._send(_Calls.send_observations(session_id, summary, **batch)))
+        call = _Calls.send_observations(session_id, summary, idempotency_key, **batch)
+        return _json(self._send(call))
 
     def get_belief(
         self, session_id: str, etag: str | None = None, top_k: int = 5
@@ -228,23 +297,45 @@ class VLMapClient:
 
 
 class AsyncVLMapClient:
-    """The same operations for asyncio programs."""
+    """The same operations for asyncio programs, retried the same way."""
 
     def __init__(
-        self, base_url: str, api_key: str | None = None, timeout_s: float = 30.0, **httpx_kwargs: Any
+        self,
+        base_url: str,
+        api_key: str | None = None,
+        timeout_s: float = 30.0,
+        retries: int = 4,
+        backoff_s: float = 0.2,
+        **httpx_kwargs: Any,
     ):
         self.http = httpx.AsyncClient(
             base_url=base_url, headers=_headers(api_key), timeout=timeout_s, **httpx_kwargs
         )
+        self.retries, self.backoff_s = retries, backoff_s
 
     async def _send(self, call: Request) -> httpx.Response:
-        return await self.http.request(call.method, call.path, **call.kwargs)
+        attempt = 0
+        while True:
+            response = None
+            try:
+                response = await self.http.request(call.method, call.path, **call.kwargs)
+            except httpx.TransportError:
+                if attempt >= self.retries:
+                    raise
+            else:
+                if response.status_code not in RETRIED_STATUSES or attempt >= self.retries:
+                    return response
+            await asyncio.sleep(_pause(attempt, self.backoff_s, response))
+            attempt += 1
 
     async def ground(self, scene_graph: Any, utterance: str, **extra: Any) -> dict[str, Any]:
         return _json(await self._send(_Calls.ground(scene_graph, utterance, **extra)))
 
-    async def create_session(self, robot_id: str, scene_graph: Any, **fields: Any) -> dict[str, Any]:
-        return _json(await self._send(_Calls.create_session(robot_id, scene_graph, **fields)))
+    async def create_session(
+        self, robot_id: str, scene_graph: Any, idempotency_key: str | None = None, **fields: Any
+    ) -> dict[str, Any]:
+        call = _Calls.create_session(robot_id, scene_graph, idempotency_key, **fields)
+        return _json(await self._send(call))
 
     async def list_sessions(self, robot_id: str | None = None) -> list[dict[str, Any]]:
         return _json(await self._send(_Calls.list_sessions(robot_id)))["sessions"]
@@ -252,20 +343,30 @@ class AsyncVLMapClient:
     async def get_session(self, session_id: str) -> dict[str, Any]:
         return _json(await self._send(_Calls.get_session(session_id)))
 
-    async def delete_session(self, session_id: str) -> None:
-        _json(await self._send(_Calls.delete_session(session_id)))
+    async def delete_session(self, session_id: str, idempotency_key: str | None = None) -> None:
+        _json(await self._send(_Calls.delete_session(session_id, idempotency_key)))
 
-    async def replace_scene_graph(self, session_id: str, scene_graph: Any) -> dict[str, Any]:
-        return _json(await self._send(_Calls.replace_scene_graph(session_id, scene_graph)))
+    async def replace_scene_graph(
+        self, session_id: str, scene_graph: Any, idempotency_key: str | None = None
+    ) -> dict[str, Any]:
+        return _json(await self._send(_Calls.replace_scene_graph(session_id, scene_graph, idempotency_key)))
 
     async def send_utterance(
-        self, session_id: str, utterance: str, options: dict[str, Any] | None = None
+        self,
+        session_id: str,
+        utterance: str,
+        options: dict[str, Any] | None = None,
+        idempotency_key: str | None = None,
     ) -> dict:
         """As `VLMapClient.send_utterance`: a dict with "grounding", "belief", "fused" and "reason"."""
-        return _json(await self._send(_Calls.send_utterance(session_id, utterance, options)))
+        call = _Calls.send_utterance(session_id, utterance, options, idempotency_key)
+        return _json(await self._send(call))
 
-    async def send_observations(self, session_id: str, summary: bool = True, **batch: Any) -> dict[str, Any]:
-        return _json(await self._send(_Calls.send_observations(session_id, summary, **batch)))
+    async def send_observations(
+        self, session_id: str, summary: bool = True, idempotency_key: str | None = None, **batch: Any
+    ) -> dict[str, Any]:
+        call = _Calls.send_observations(session_id, summary, idempotency_key, **batch)
+        return _json(await self._send(call))
 
     async def get_belief(
         self, session_id: str, etag: str | None = None, top_k: int = 5

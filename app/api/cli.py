@@ -40,6 +40,7 @@ def serve_command(args: argparse.Namespace) -> int:
     from app.api.app import create_app
     from app.api.auth import KeyRing
     from app.api.observability import configure_logging
+    from app.api.server import guarded_protocol
     from app.settings import get_settings
 
     settings = get_settings()
@@ -57,7 +58,16 @@ def serve_command(args: argparse.Namespace) -> int:
             return 2
         log.warning("no API keys configured: every request is accepted (fine on loopback for development)")
     log.info("starting", extra={"host": host, "port": port, "grounder": settings.grounder})
-    uvicorn.run(create_app(settings), host=host, port=port, log_config=None, access_log=False)
+    uvicorn.run(
+        create_app(settings),
+        host=host,
+        port=port,
+        log_config=None,
+        access_log=False,
+        http=guarded_protocol(settings.header_timeout_s, settings.max_header_bytes),
+        limit_concurrency=settings.max_connections,
+        timeout_keep_alive=settings.keep_alive_s,
+    )
     return 0
 
 

@@ -102,7 +102,7 @@ def summarise_errors(
     errors: Sequence[dict[str, Any]], total: int, limit: int
 ) -> tuple[str, str | None, list[dict[str, Any]]]:
     """(message, field, listed errors) for a 422: the first `limit` errors, each without its input and with
-    its message and context values cut short, and a message naming the first and how many there were."""
+    its message and context values cut short, the first's message and field, and how many there were."""
     listed = []
     for error in errors[:limit]:
         entry: dict[str, Any] = {
@@ -115,7 +115,7 @@ def summarise_errors(
         listed.append(entry)
     first = listed[0] if listed else {"loc": [], "msg": "invalid request"}
     field = field_path(tuple(first["loc"])) or None
-    message = f"{field}: {first['msg']}" if field else str(first["msg"])
+    message = str(first["msg"])
     if total > 1:
         message += f" (and {total - 1} more errors; {len(listed)} listed)"
     return message, field, listed
@@ -126,7 +126,8 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
     limit = request.app.state.services.settings.max_validation_errors
     errors = list(exc.errors())
     message, field, listed = summarise_errors(errors, len(errors), limit)
-    return JSONResponse(status_code=422, content=error_body("invalid_input", message, field, listed))
+    text = f"{field}: {message}" if field else message
+    return JSONResponse(status_code=422, content=error_body("invalid_input", text, field, listed))
 
 
 async def _domain_error(request: Request, exc: VLMapError) -> JSONResponse:
