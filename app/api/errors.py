@@ -86,8 +86,9 @@ def error_body(
 
 
 def field_path(loc: tuple[Any, ...] | list[Any]) -> str:
-    """("body", "scene_graph", "native", "objects", 3, "size") -> "scene_graph.objects.3.size"."""
-    parts = [str(p) for p in loc if p not in _UNION_TAGS]
+    """("body", "scene_graph", "native", "objects", 3, "size") -> "scene_graph.objects.3.size"; pydantic's
+    names of union members ("list[constrained-int]") and of dict keys ("[key]") are left out too."""
+    parts = [str(p) for p in loc if p not in _UNION_TAGS and not (isinstance(p, str) and p.endswith("]"))]
     if parts and parts[0] in {"body", "query", "path", "header"}:
         parts = parts[1:]
     return ".".join(parts)

@@ -249,11 +249,14 @@ class Services:
     async def slot(self, limiter: CapacityLimiter, limit_name: str, what: str) -> AsyncIterator[None]:
         """Hold one of `limiter`'s slots, waiting up to `busy_wait_s` for one; LimitExceeded (429 with
         Retry-After) when none frees up in time."""
-        with anyio.move_on_after(self.settings.busy_wait_s) as waited:
-            await limiter.acquire()
-        if waited.cancelled_caught:
-            msg = f"all {limiter.total_tokens:g} slots for {what} are busy; retry shortly"
-            raise LimitExceeded(msg, limit_name=limit_name, retry_after_s=1.0)
+        try:
+            limiter.acquire_nowait()
+        except anyio.WouldBlock:
+            with anyio.move_on_after(self.settings.busy_wait_s) as waited:
+                await limiter.acquire()
+            if waited.cancelled_caught:
+                msg = f"all {limiter.total_tokens:g} slots for {what} are busy; retry shortly"
+                raise LimitExceeded(msg, limit_name=limit_name, retry_after_s=1.0) from None
         try:
             yield
         finally:
