@@ -1,0 +1,192 @@
+"""Idempotency-Key on every state-changing session endpoint, on every store: the same key with the same
+request is answered again and applied once; with another request it is a 422; keys survive a restart of the
+memory store (its log and snapshots) and are bounded in number and age. The kill -9 and Redis failover runs
+are in tests/test_sessions_processes.py and tests/test_redis_cluster.py."""
+
+from __future__ import annotations
+
+import hashlib
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from app.api.app import create_app
+from app.api.wire import encode_msgpack_batch
+from app.errors import AlreadyApplied
+from app.stores import MemorySessionStore
+from app.stores.base import Idempotency, IdempotencyLog, IdempotencyRecord
+from tests.conftest import load_resource_json, model_free_settings
+from tests.test_stores import make_session, redis_store, wide_mixture
+
+MSGPACK = {"content-type": "application/msgpack"}
+
+
+@pytest.fixture(params=["memory", pytest.param("redis", marks=pytest.mark.redis)])
+def client(request: pytest.FixtureRequest) -> Iterator[TestClient]:
+    store = (
+        MemorySessionStore()
+        if request.param == "memory"
+        else redis_store(request.getfixturevalue("redis_url"))
+    )
+    with TestClient(create_app(model_free_settings(), store=store)) as test_client:
+        yield test_client
+    store.close()
+
+
+def key() -> dict[str, str]:
+    return {"Idempotency-Key": uuid.uuid4().hex}
+
+
+def create(client: TestClient, headers: dict[str, Any] | None = None, robot: str = "r") -> Any:
+    body = {
+        "robot_id": robot,
+        "scene_graph": load_resource_json("scenes/two_rooms.json"),
+        "target_label": "backpack",
+        "label_map": {"0": "floor", "1": "backpack"},
+        "grid": {"voxel_size": 0.25},
+    }
+    return client.post("/v1/sessions", json=body, headers=headers or {})
+
+
+def layers(client: TestClient, sid: str) -> tuple[int, str]:
+    grid = client.get(f"/v1/sessions/{sid}/belief", params={"format": "grid", "layers": "true"})
+    return msgpack.unpackb(grid.content)["version"], hashlib.sha256(grid.content).hexdigest()
+
+
+def test_a_batch_sent_twice_with_its_key_is_applied_once(client: TestClient) -> None:
+    sid = create(client).json()["id"]
+    batch = encode_msgpack_batch(voxels=np.array([[1, 1, 1], [2, 2, 2]]), labels=np.array([1, 0]), stamp=7.0)
+    headers = {**MSGPACK, **key()}
+    first = client.post(f"/v1/sessions/{sid}/observations", content=batch, headers=headers)
+    after_first = layers(client, sid)
+    again = client.post(f"/v1/sessions/{sid}/observations", content=batch, headers=headers)
+    assert first.status_code == again.status_code == 200
+    assert "idempotent-replayed" not in first.headers and again.headers["idempotent-replayed"] == "true"
+    for field in ("version", "stamp", "voxels_updated", "voxels_outside"):
+        assert again.json()[field] == first.json()[field]
+    assert layers(client, sid) == after_first  # not applied twice
+    other = encode_msgpack_batch(voxels=np.array([[3, 3, 3]]), labels=np.array([1]))
+    reused = client.post(f"/v1/sessions/{sid}/observations", content=other, headers=headers)
+    assert reused.status_code == 422 and reused.json()["code"] == "idempotency_key_reused"
+    assert layers(client, sid) == after_first
+
+
+def test_json_batches_and_utterances_are_applied_once(client: TestClient) -> None:
+    sid = create(client).json()["id"]
+    headers = key()
+    batch = {"voxels": [[1, 2, 3]], "labels": ["backpack"]}
+    first = client.post(f"/v1/sessions/{sid}/observations", json=batch, headers=headers)
+    again = client.post(f"/v1/sessions/{sid}/observations", json=batch, headers=headers)
+    assert again.json()["version"] == first.json()["version"] == 1
+    said = key()
+    utterance = {"utterance": "the backpack is on the table"}
+    one = client.post(f"/v1/sessions/{sid}/utterances", json=utterance, headers=said)
+    two = client.post(f"/v1/sessions/{sid}/utterances", json=utterance, headers=said)
+    assert one.status_code == two.status_code == 200 and two.headers["idempotent-replayed"] == "true"
+    assert one.json()["grounding"] == two.json()["grounding"]
+    assert two.json()["fused"] and two.json()["belief"]["version"] == 2  # once
+    assert layers(client, sid)[0] == 2
+
+
+def test_creation_scene_graph_and_deletion_are_applied_once(client: TestClient) -> None:
+    headers = key()
+    first, again = create(client, headers), create(client, headers)
+    assert first.status_code == again.status_code == 201 and first.json()["id"] == again.json()["id"]
+    assert again.headers["idempotent-replayed"] == "true"
+    assert len(client.get("/v1/sessions", params={"robot_id": "r"}).json()["sessions"]) == 1
+    assert create(client, headers, robot="r-other").json()["id"] != first.json()["id"]  # keys are per robot
+    sid = first.json()["id"]
+    graph = load_resource_json("scenes/two_rooms.json")
+    put = key()
+    assert client.put(f"/v1/sessions/{sid}/scene-graph", json=graph, headers=put).json()["version"] == 1
+    replayed = client.put(f"/v1/sessions/{sid}/scene-graph", json=graph, headers=put)
+    assert replayed.headers["idempotent-replayed"] == "true" and replayed.json()["version"] == 1
+    gone = key()
+    assert client.delete(f"/v1/sessions/{sid}", headers=gone).status_code == 204
+    repeat = client.delete(f"/v1/sessions/{sid}", headers=gone)
+    assert repeat.status_code == 204 and repeat.headers["idempotent-replayed"] == "true"
+    assert (
+        client.delete(f"/v1/sessions/{sid}", headers=key()).status_code == 404
+    )  # a new delete: nothing there
+
+
+@pytest.mark.parametrize("bad", [b"", b" ", "é".encode() * 4, b"k" * 256, b'""', b"a\x7fb"])
+def test_a_malformed_key_is_a_422(client: TestClient, bad: bytes) -> None:
+    response = create(client, {"Idempotency-Key": bad})
+    assert response.status_code == 422 and response.json()["field"] == "Idempotency-Key"
+
+
+def test_the_quoted_form_of_a_key_is_the_same_key(client: TestClient) -> None:
+    token = uuid.uuid4().hex
+    assert (
+        create(client, {"Idempotency-Key": token}).json()["id"]
+        == create(client, {"Idempotency-Key": f'"{token}"'}).json()["id"]
+    )
+
+
+# -- the stores -------------------------------------------------------------------------------------------
+
+
+def test_keys_survive_reopening_the_log_and_its_snapshots(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    store = MemorySessionStore(data, snapshot_every=3)
+    store.create(make_session("s"))
+    rng = np.random.default_rng(0)
+    keys = [Idempotency(f"k{i}", f"fp{i}") for i in range(6)]
+    for k in keys[:5]:
+        store.apply_utterance("s", wide_mixture(rng), idempotency=k)  # compactions happen in between
+    store.create(make_session("gone"))
+    store.delete("gone", idempotency=keys[5])
+    store.close()
+    reopened = MemorySessionStore(data, snapshot_every=3)
+    for k in keys[:5]:
+        with pytest.raises(AlreadyApplied) as seen:
+            reopened.apply_utterance("s", wide_mixture(rng), idempotency=k)
+        assert seen.value.record.fingerprint == k.fingerprint  # type: ignore[attr-defined]
+    with pytest.raises(AlreadyApplied):
+        reopened.delete("gone", idempotency=keys[5])  # the tombstone
+    assert reopened.get("s").version == 5
+    reopened._compact()  # the tombstone is logged again before the old segments go
+    reopened.close()
+    again = MemorySessionStore(data)
+    with pytest.raises(AlreadyApplied):
+        again.delete("gone", idempotency=keys[5])
+    again.close()
+
+
+def test_a_session_remembers_its_last_keys_within_the_window() -> None:
+    log = IdempotencyLog(window_s=10.0, max_keys=3)
+    for i in range(5):
+        log.add(f"k{i}", IdempotencyRecord("fp", i, at=float(i)))
+    assert [k for k, _ in log.items()] == ["k2", "k3", "k4"]
+    log.add("late", IdempotencyRecord("fp", 9, at=100.0))
+    assert [k for k, _ in log.items()] == ["late"]  # the others are older than the window
+    log.check(Idempotency("k2", "fp"), now=100.0)  # forgotten: no AlreadyApplied
+    with pytest.raises(AlreadyApplied):
+        log.check(Idempotency("late", "fp"), now=105.0)
+
+
+@pytest.mark.redis
+def test_redis_keys_are_bounded_per_session_and_a_keyed_delete_leaves_only_its_own(redis_url: str) -> None:
+    store = redis_store(redis_url, idempotency_keys=4)
+    store.create(make_session("bounded"))
+    for i in range(10):
+        store.apply_detections(
+            "bounded", [0.6], flat_idx=np.array([i]), idempotency=Idempotency(f"k{i}", "fp")
+        )
+    remembered = store._client.hkeys(store._key("bounded", "idem"))
+    assert len(remembered) == 4 and b"k:k9" in remembered
+    with pytest.raises(AlreadyApplied):
+        store.apply_detections("bounded", [0.6], flat_idx=np.array([9]), idempotency=Idempotency("k9", "fp"))
+    store.delete("bounded", idempotency=Idempotency("bye", "fp"))
+    assert store._client.hkeys(store._key("bounded", "idem")) == [b"k:bye"]
+    assert 0 < store._client.pttl(store._key("bounded", "idem")) <= 3600 * 1000
+    with pytest.raises(AlreadyApplied):
+        store.delete("bounded", idempotency=Idempotency("bye", "fp"))
+    store.close()
