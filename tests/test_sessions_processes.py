@@ -155,3 +155,60 @@ def test_kill_9_mid_stream_loses_no_acknowledged_batch(
     # The batch in flight at the kill may or may not have reached the log; nothing acknowledged is missing.
     assert grid.version in (n_acked, n_acked + 1)
     np.testing.assert_array_equal(grid.vis, sequential_sum(shape, batches[: grid.version]))
+
+
+#: The model-free parts: a replica killed mid-stream restarts in seconds.
+MODEL_FREE = {
+    "VLMAP_GROUNDER": "geometric",
+    "VLMAP_GROUNDERS": '["geometric"]',
+    "VLMAP_PROPOSER": "lexical",
+    "VLMAP_WORKER_PROCESSES": "0",
+}
+
+
+def stream_through_a_kill(env: dict[str, str], scene: dict[str, Any], seed: int) -> None:
+    """A robot streams batches (each with its Idempotency-Key, retried until acknowledged) to a replica that
+    is killed with SIGKILL mid-stream and restarted on its port: every batch is applied exactly once, the one
+    in flight at the kill included (whether or not it had been applied before the kill)."""
+    proc, url = start_service(env)
+    try:
+        wait_ready(url, proc)
+        session_id, shape = create(url, scene)
+        batches = make_batches(shape, seed=seed)[:300]
+        acknowledged: list[int] = []
+
+        def stream() -> None:
+            with VLMapClient(url, timeout_s=5.0, retries=40, backoff_s=0.1) as client:
+                for i, (ijk, labels) in enumerate(batches):
+                    client.send_observations(session_id, summary=False, voxels=ijk, labels=labels)
+                    acknowledged.append(i)
+
+        sender = threading.Thread(target=stream)
+        sender.start()
+        while len(acknowledged) < 100:
+            sender.join(timeout=0.01)
+            assert sender.is_alive(), "the stream ended before the kill"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc, url = start_service(env, port=int(url.rsplit(":", 1)[1]))
+        wait_ready(url, proc)
+        sender.join(timeout=120)
+        assert not sender.is_alive() and acknowledged == list(range(len(batches)))
+        with VLMapClient(url) as client:
+            grid = client.get_belief_grid(session_id, layers=True)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert grid.version == len(batches)
+    np.testing.assert_array_equal(grid.vis, sequential_sum(shape, batches))
+
+
+def test_a_kill_9_mid_stream_with_retries_applies_every_batch_once(scene: dict, tmp_path: Path) -> None:
+    stream_through_a_kill({**MODEL_FREE, "VLMAP_DATA_DIR": str(tmp_path / "sessions")}, scene, seed=3)
+
+
+@pytest.mark.redis
+def test_a_redis_replica_killed_mid_stream_with_retries_applies_every_batch_once(
+    scene: dict, redis_url: str
+) -> None:
+    stream_through_a_kill({**MODEL_FREE, "VLMAP_STORE": redis_url}, scene, seed=4)
