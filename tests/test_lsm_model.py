@@ -544,13 +544,18 @@ def test_percentile_equals_numpy(n):
         assert percentile(values, q) == pytest.approx(float(np.percentile(values, q)), rel=1e-12, abs=1e-12)
 
 
+def _saturated(seed: int) -> LanguageSensorModel:
+    """A tiny model with large head outputs: tanh saturates at the boxes' faces, softplus runs far."""
+    model = _tiny_model(seed=seed)
+    with torch.no_grad():
+        model.head[-1].weight.normal_(0.0, 3.0)
+        model.head[-1].bias.normal_(0.0, 3.0)
+    return model.eval()
+
+
 def test_the_mean_of_in_lies_inside_the_anchors_box(packed):
     """With contained_in, "in" means c + h tanh(.) over the anchor's box, whatever the head outputs."""
-    model = _tiny_model(seed=4)
-    with torch.no_grad():
-        model.head[-1].weight.normal_(0.0, 3.0)  # large outputs: tanh saturates at the box's faces
-        model.head[-1].bias.normal_(0.0, 3.0)
-    model.eval()
+    model = _saturated(4)
     batch = dataclasses.replace(
         packed.batch(), relation=torch.full((len(packed),), RELATION_INDEX[Relation.IN])
     )
@@ -562,6 +567,29 @@ def test_the_mean_of_in_lies_inside_the_anchors_box(packed):
     free.eval()
     with torch.no_grad():
         assert not torch.all(free(batch).mean <= batch.anchor_high + 1e-5)
+
+
+def test_the_mean_of_on_a_plain_top_rests_above_it_and_over_its_footprint(packed):
+    model = _saturated(5)
+    on = RELATION_INDEX[Relation.ON]
+    batch = dataclasses.replace(packed.batch(), relation=torch.full((len(packed),), on))
+    plain = batch.plain_top
+    assert plain.any() and (~plain).any()  # the fixture holds plain tops and seats (the sofa)
+    with torch.no_grad():
+        out = model(batch)
+    top = batch.anchor_high[:, 2]
+    assert torch.all(out.mean[plain, 2] > top[plain])
+    assert torch.all(out.mean[plain, 2] <= top[plain] + model.cfg.on_lift * 20)
+    assert torch.all(out.mean[plain, :2] >= batch.anchor_low[plain, :2] - 1e-5)
+    assert torch.all(out.mean[plain, :2] <= batch.anchor_high[plain, :2] + 1e-5)
+    # A seat keeps things inside its box (under the backrest): no constraint there.
+    free = dataclasses.replace(model.cfg, resting_on=False)
+    unconstrained = LanguageSensorModel(free)
+    unconstrained.load_state_dict(model.state_dict())
+    unconstrained.eval()
+    with torch.no_grad():
+        other = unconstrained(batch)
+    torch.testing.assert_close(out.mean[~plain], other.mean[~plain])
 
 
 def test_on_labels_rest_on_plain_tops_but_not_inside_seats(cases):

@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from app.data.relations import internal_support_reach
 from app.errors import NotFound
 from app.grounding.relations import Relation
 from app.lsm.model import RELATION_INDEX, ROLE_ANCHOR, ROLE_OTHER, LSMBatch, LSMConfig
@@ -100,6 +101,7 @@ class Sample:
     region_scale: np.ndarray  # (3,) s
     anchor_low: np.ndarray  # (3,) corners of the anchors' joint box, local frame
     anchor_high: np.ndarray  # (3,)
+    plain_top: bool  # one anchor object with a plain top surface (things rest on it, not inside it)
     floor_z: float  # local frame
     scene_low: np.ndarray  # (3,) corners of the scene's bounding box, local frame
     scene_high: np.ndarray  # (3,)
@@ -310,6 +312,7 @@ def make_sample(
         region_scale=scale.astype(np.float32),
         anchor_low=anchor_low.astype(np.float32),
         anchor_high=anchor_high.astype(np.float32),
+        plain_top=len(anchors) == 1 and internal_support_reach(anchor_labels[0]) == 0,
         floor_z=float(arrays.floor_z - origin[2]),
         scene_low=scene_low.astype(np.float32),
         scene_high=scene_high.astype(np.float32),
@@ -445,6 +448,7 @@ class PackedSamples:
         self.scale = torch.from_numpy(np.stack([s.region_scale for s in samples]))  # (S, 3)
         self.anchor_low = torch.from_numpy(np.stack([s.anchor_low for s in samples]))  # (S, 3)
         self.anchor_high = torch.from_numpy(np.stack([s.anchor_high for s in samples]))  # (S, 3)
+        self.plain_top = torch.tensor([s.plain_top for s in samples], dtype=torch.bool)  # (S,)
         self.floor_z = torch.tensor([s.floor_z for s in samples], dtype=torch.float32)  # (S,)
         self.scene_low = torch.from_numpy(np.stack([s.scene_low for s in samples]))  # (S, 3)
         self.scene_high = torch.from_numpy(np.stack([s.scene_high for s in samples]))  # (S, 3)
@@ -475,6 +479,7 @@ class PackedSamples:
             region_scale=scale,
             anchor_low=self.anchor_low[index],
             anchor_high=self.anchor_high[index],
+            plain_top=self.plain_top[index],
             region_cond=region_condition(
                 shift, scale, floor_z, self.scene_low[index], self.scene_high[index]
             ),

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from app.lsm.features import PackedSamples, object_geometry, region_condition
-from app.lsm.model import ROLE_QUERY, Block, LanguageSensorModel, LSMOutput, contained_rows, decode_head
+from app.lsm.model import ROLE_QUERY, AnchorBox, Block, LanguageSensorModel, LSMOutput, decode_head
 
 
 class LSMInference:
@@ -125,8 +125,8 @@ class LSMInference:
         if model.relation_prior is not None:
             prior = F.linear(cond, model.relation_prior.weight, model.relation_prior.bias)
             out = out + prior.view(bsz, cfg.n_relations, cfg.n_outputs)[torch.arange(bsz), packed.relation]
-        inside = contained_rows(packed.relation, packed.anchor_low, packed.anchor_high, cfg)
-        return decode_head(out, shift, scale, cfg, inside)
+        box = AnchorBox(packed.relation, packed.anchor_low, packed.anchor_high, packed.plain_top)
+        return decode_head(out, shift, scale, cfg, box)
 
     def _spatial_bias(
         self,

@@ -17,8 +17,8 @@ wider Gaussian about the same mean,
     p(y | h) = (1 - a) N(y; mu, Sigma) + a N(y; mu, Sigma + Delta),   Delta = D_w D_w^T,
 
 with D_w = diag(s) D (D lower-triangular, softplus diagonal) and a = a_max sigmoid(.) from 7 more head
-outputs (16 in all). With `contained_in`, the mean of an "in" hypothesis is c + h tanh(.) for its anchor's box
-(centre c, half sides h): inside the container by construction.
+outputs (16 in all). Support physics by construction (`decode_head`): the mean of "in" lies inside the
+anchor's box, the mean of "on" a plain top (not a seat or a shelf) over its footprint and above its top.
 
 Loss (reference appendix, with the density above), lambda_1 = 1:
     L = -log p(y | h) + lambda_1 ||mu - y||_1,
@@ -76,6 +76,8 @@ class LSMConfig:
     tail: bool = True  # deviation: a wider Gaussian per hypothesis with a learned weight
     tail_max_weight: float = 0.5  # a < a_max: the core stays the heavier part
     contained_in: bool = True  # deviation: the mean of "in" lies inside the anchor's box
+    resting_on: bool = True  # deviation: the mean of "on" a plain top lies over it, above its top
+    on_lift: float = 0.25  # metres: the "on" mean's height above the top is on_lift * softplus(.)
     # Input features (they define the output frame, so they travel with the weights).
     max_objects: int = 150  # nearest to the anchor(s), anchors always kept
     region_margin_xy: float = 1.0  # s = reach of the anchors' joint box from t + margin (metres), per axis
@@ -113,6 +115,7 @@ class LSMBatch:
     region_scale: torch.Tensor  # (B, 3) s, metres
     anchor_low: torch.Tensor  # (B, 3) the anchors' joint box
     anchor_high: torch.Tensor  # (B, 3)
+    plain_top: torch.Tensor  # (B,) bool: one anchor with a plain top surface (not a seat or a shelf)
     region_cond: torch.Tensor  # (B, C)
     target: torch.Tensor | None = None  # (B, 3) metres, for training and evaluation
 
@@ -270,8 +273,8 @@ class LanguageSensorModel(nn.Module):
         if self.relation_prior is not None:
             prior = self.relation_prior(batch.region_cond).view(bsz, cfg.n_relations, cfg.n_outputs)
             out = out + prior[torch.arange(bsz), batch.relation]  # (B, O)
-        inside = contained_rows(batch.relation, batch.anchor_low, batch.anchor_high, cfg)
-        return decode_head(out, batch.region_shift, batch.region_scale, cfg, inside)
+        box = AnchorBox(batch.relation, batch.anchor_low, batch.anchor_high, batch.plain_top)
+        return decode_head(out, batch.region_shift, batch.region_scale, cfg, box)
 
     def loss(self, output: LSMOutput, target: torch.Tensor) -> torch.Tensor:
         """Mean over the batch of the density's NLL (nats) + l1_weight * ||mu - y||_1."""
@@ -286,13 +289,13 @@ def _lower(diag: torch.Tensor, off: torch.Tensor) -> torch.Tensor:
     ).view(-1, 3, 3)
 
 
-def contained_rows(
-    relation: torch.Tensor, low: torch.Tensor, high: torch.Tensor, cfg: LSMConfig
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
-    """(rows of "in", the anchors' box centre, half sides) when `cfg.contained_in`, else None."""
-    if not cfg.contained_in:
-        return None
-    return relation == RELATION_INDEX[Relation.IN], 0.5 * (low + high), 0.5 * (high - low)
+class AnchorBox(NamedTuple):
+    """What the head's physics reads of each sample: its relation and its anchors' joint box."""
+
+    relation: torch.Tensor  # (B,) RELATION_INDEX
+    low: torch.Tensor  # (B, 3)
+    high: torch.Tensor  # (B, 3)
+    plain_top: torch.Tensor  # (B,) bool
 
 
 def decode_head(
@@ -300,20 +303,29 @@ def decode_head(
     shift: torch.Tensor,
     scale: torch.Tensor,
     cfg: LSMConfig,
-    inside: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+    box: AnchorBox | None = None,
 ) -> LSMOutput:
     """The head's outputs (B, O) as the density: mu = s tanh(.) + t, L_w = diag(s) L, and the tail.
 
-    With `inside` (the rows of "in", their anchors' box centre c and half sides h), those rows' mean is
-    c + h tanh(.): a target in a container is inside its box, by construction.
+    With the anchors' `box` (centre c, half sides h, top z_top), support physics by construction:
+    - "in" (`cfg.contained_in`): mu = c + h tanh(.), inside the container's box;
+    - "on" a plain top (`cfg.resting_on`): mu_xy = c_xy + h_xy tanh(.) over its footprint and
+      mu_z = z_top + on_lift softplus(.) above its top surface.
     """
     squashed = torch.tanh(out[:, :3])  # (B, 3) region frame
     chol = _lower(F.softplus(out[:, 3:6]) + cfg.sigma_floor, out[:, 6:9])  # (B, 3, 3)
     s, t = scale, shift  # (B, 3) each
     mean = s * squashed + t
-    if inside is not None:
-        rows, centre, half = inside
-        mean = torch.where(rows[:, None], centre + half * squashed, mean)
+    if box is not None:
+        centre, half = 0.5 * (box.low + box.high), 0.5 * (box.high - box.low)  # (B, 3) each
+        inside = centre + half * squashed
+        if cfg.contained_in:
+            mean = torch.where((box.relation == RELATION_INDEX[Relation.IN])[:, None], inside, mean)
+        if cfg.resting_on:
+            lifted = box.high[:, 2] + cfg.on_lift * F.softplus(out[:, 2])  # (B,)
+            resting = torch.cat([inside[:, :2], lifted[:, None]], dim=1)
+            rows = (box.relation == RELATION_INDEX[Relation.ON]) & box.plain_top
+            mean = torch.where(rows[:, None], resting, mean)
     tail_chol = tail_weight = None
     if cfg.tail:
         tail_chol = s[:, :, None] * _lower(F.softplus(out[:, 9:12]) + cfg.sigma_floor, out[:, 12:15])
@@ -366,8 +378,9 @@ def load_checkpoint(directory: Path) -> tuple[LanguageSensorModel, dict[str, Any
     directory = Path(directory)
     meta = json.loads((directory / CONFIG_NAME).read_text(encoding="utf-8"))
     # A checkpoint's config lists every field; one without "tail" predates the tail (one Gaussian), one
-    # without "contained_in" the box constraint of "in".
-    model = LanguageSensorModel(LSMConfig.from_dict({"tail": False, "contained_in": False} | meta["model"]))
+    # without "contained_in" or "resting_on" the box constraints of "in" and "on".
+    older = {"tail": False, "contained_in": False, "resting_on": False}
+    model = LanguageSensorModel(LSMConfig.from_dict(older | meta["model"]))
     model.load_state_dict(load_file(str(directory / WEIGHTS_NAME)), strict=True)
     model.eval()
     return model, meta
