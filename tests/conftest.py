@@ -77,3 +77,15 @@ def redis_url() -> Iterator[str]:
         yield server.url
     finally:
         server.close()
+
+
+@pytest.fixture(scope="session")
+def redis_cluster_url() -> str:
+    """A Redis Cluster of 3 masters with a replica each, started by `.ci/run` (VLMAP_TEST_REDIS_CLUSTER_URL,
+    any of its nodes). Skips without one: a cluster takes six servers and `redis-cli --cluster create`."""
+    given = os.environ.get("VLMAP_TEST_REDIS_CLUSTER_URL")
+    if not given:
+        pytest.skip(
+            "no Redis Cluster: set VLMAP_TEST_REDIS_CLUSTER_URL (.ci/run starts one on ports 7000-7005)"
+        )
+    return given

@@ -151,14 +151,24 @@ def redis_store(url: str, **kwargs: Any) -> Any:
     return RedisSessionStore(url, **kwargs)
 
 
-@pytest.fixture(params=["memory", "durable", pytest.param("redis", marks=pytest.mark.redis)])
+@pytest.fixture(
+    params=[
+        "memory",
+        "durable",
+        pytest.param("redis", marks=pytest.mark.redis),
+        pytest.param("redis-cluster", marks=pytest.mark.redis),
+    ]
+)
 def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
     if request.param == "memory":
         s: Any = MemorySessionStore()
     elif request.param == "durable":
         s = MemorySessionStore(tmp_path / "data", snapshot_every=5)
-    else:
+    elif request.param == "redis":
         s = redis_store(request.getfixturevalue("redis_url"))
+    else:
+        s = redis_store(request.getfixturevalue("redis_cluster_url"))
+        assert s.clustered
     yield s
     s.close()
 
@@ -953,12 +963,17 @@ class AttributeSpy:
         setattr(self._wrapped, name, value)
 
 
-def redis_commands(store: Any, call: Callable[[], Any]) -> list[str]:
-    """The commands the Redis server executes while `call()` runs (read through MONITOR)."""
+def redis_commands(store: Any, call: Callable[[], Any], session_id: str | None = None) -> list[str]:
+    """The commands the Redis server (on a cluster: the node holding `session_id`) executes while `call()`
+    runs (read through MONITOR)."""
     marker = f"end-{uuid.uuid4().hex}"
-    with store._client.monitor() as monitor:
+    server = store._client
+    if store.clustered:
+        assert session_id is not None
+        server = server.get_redis_connection(server.get_node_from_key(store._key(session_id, "meta")))
+    with server.monitor() as monitor:
         call()
-        store._client.echo(marker)
+        server.echo(marker)
         commands = []
         while (command := monitor.next_command()["command"]) != f"ECHO {marker}":
             commands.append(command)
@@ -1042,9 +1057,10 @@ def test_info_is_get_info_without_reading_the_layers(store: Any) -> None:
         store.get("meta-only")
         assert "copy" in spy.read  # the spy does see a read of the layers
     else:
-        touched = [c for c in redis_commands(store, lambda: store.info("meta-only")) if "{meta-only}" in c]
+        info_commands = redis_commands(store, lambda: store.info("meta-only"), "meta-only")
+        touched = [c for c in info_commands if "{meta-only}" in c]
         assert touched and all(":meta" in c and ":lang" not in c and ":vis" not in c for c in touched)
-        assert any(":lang" in c for c in redis_commands(store, lambda: store.get("meta-only")))
+        assert any(":lang" in c for c in redis_commands(store, lambda: store.get("meta-only"), "meta-only"))
     with pytest.raises(NotFound):
         store.info("absent")
 
