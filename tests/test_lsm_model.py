@@ -647,3 +647,8 @@ def test_the_calibration_margin_multiplies_every_scale():
     assert wider["margin"] == 1.25 and wider["overall"] == pytest.approx(1.25 * plain["overall"])
     for relation in ("near", "on"):
         assert wider["per_relation"][relation] == pytest.approx(1.25 * plain["per_relation"][relation])
+    own = fit_calibration(
+        _gaussians(np.zeros((500, 3)), covs), targets, relations, margin=1.1, margins={"near": 1.4}
+    )
+    assert own["per_relation"]["near"] == pytest.approx(1.4 * plain["per_relation"]["near"])
+    assert own["per_relation"]["on"] == pytest.approx(1.1 * plain["per_relation"]["on"])

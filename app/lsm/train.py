@@ -98,7 +98,8 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     version: str = "dev"
     calibration_prior_cases: float = 50.0  # see fit_calibration
-    calibration_margin: float = 1.0  # every fitted scale times this (see fit_calibration)
+    calibration_margin: float = 1.0  # every fitted scale times this (see fit_calibration) ...
+    calibration_margins: dict[str, float] = field(default_factory=dict)  # ... or this, per relation
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> TrainConfig:
@@ -121,6 +122,7 @@ class TrainConfig:
             version=str(values.get("version", "dev")),
             calibration_prior_cases=float(values.get("calibration_prior_cases", 50.0)),
             calibration_margin=float(values.get("calibration_margin", 1.0)),
+            calibration_margins={k: float(v) for k, v in (values.get("calibration_margins") or {}).items()},
         )
 
     @classmethod
@@ -393,12 +395,14 @@ def fit_calibration(
     groups: list[str],
     prior_cases: float = 50.0,
     margin: float = 1.0,
+    margins: dict[str, float] | None = None,
 ) -> dict[str, Any]:
     """Covariance scales c_k per group k: the NLL-minimising scale of every covariance of the group's
     densities, shrunk towards the pooled one, log c_k = (n_k log c^_k + K log c^) / (n_k + K), K =
     `prior_cases`, so that a group with few calibration cases does not get a noisy scale; then times
-    `margin`, for data further from training than the calibration split (the model card says how it was
-    chosen)."""
+    `margins[k]` (default `margin`), for data further from training than the calibration split (the model
+    card says how they were chosen)."""
+    margins = margins or {}
     names = np.asarray(groups)
     pooled = _nll_optimal_scale(densities, targets)
     per_group, counts = {}, {}
@@ -408,12 +412,13 @@ def fit_calibration(
         n = int(mask.sum())
         counts[g] = n
         shrunk = math.exp((n * math.log(own) + prior_cases * math.log(pooled)) / (n + prior_cases))
-        per_group[g] = float(margin * shrunk)
+        per_group[g] = float(margins.get(g, margin) * shrunk)
     return {
         "method": "covariance scale per relation (and for region hypotheses): the NLL-optimal scale on the "
         "calibration split, shrunk to the pooled one in log space, times the margin",
         "prior_cases": prior_cases,
         "margin": margin,
+        "margins": margins,
         "overall": margin * pooled,
         "per_relation": per_group,
         "cases": counts,
@@ -580,7 +585,12 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
     calib = splits["calib"]
     densities = predict(model, packed["calib"], calib.samples, opt.eval_batch_size)
     calibration = fit_calibration(
-        densities, calib.targets, calib.groups, config.calibration_prior_cases, config.calibration_margin
+        densities,
+        calib.targets,
+        calib.groups,
+        config.calibration_prior_cases,
+        config.calibration_margin,
+        config.calibration_margins,
     )
     training = {
         "data": {n: {"samples": len(s.samples), "skipped_cases": s.skipped} for n, s in splits.items()},
@@ -622,7 +632,12 @@ def recalibrate(model_dir: Path, config: TrainConfig, out_dir: Path) -> dict[str
     calib = splits["calib"]
     densities = predict(model, packed["calib"], calib.samples, config.optim.eval_batch_size)
     calibration = fit_calibration(
-        densities, calib.targets, calib.groups, config.calibration_prior_cases, config.calibration_margin
+        densities,
+        calib.targets,
+        calib.groups,
+        config.calibration_prior_cases,
+        config.calibration_margin,
+        config.calibration_margins,
     )
     extra = {k: v for k, v in meta.items() if k != "model"} | {
         "calibration": calibration,
