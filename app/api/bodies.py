@@ -20,7 +20,7 @@ from fastapi import Depends, Request
 from pydantic import TypeAdapter, ValidationError
 
 from app.api.errors import summarise_errors
-from app.errors import InvalidInput, UnsupportedMediaType
+from app.errors import InvalidInput, LimitExceeded, UnsupportedMediaType
 
 T = TypeVar("T")
 
@@ -41,6 +41,21 @@ def require_json(request: Request) -> None:
         raise UnsupportedMediaType(msg, field="content-type")
 
 
+async def json_bytes(request: Request) -> bytes:
+    """The raw body of a JSON request, within `max_json_body_bytes` (413 above: pydantic validates JSON
+    holding the interpreter lock, so the loop would wait on a large one however it is run)."""
+    limit = request.app.state.services.settings.max_json_body_bytes
+    declared = request.headers.get("content-length", "")
+    if declared.isdigit() and int(declared) > limit:
+        msg = f"a JSON body of {int(declared)} bytes exceeds the limit of {limit}; send batches as msgpack"
+        raise LimitExceeded(msg, limit_name="max_json_body_bytes")
+    raw = await request.body()
+    if len(raw) > limit:
+        msg = f"a JSON body of {len(raw)} bytes exceeds the limit of {limit}; send batches as msgpack"
+        raise LimitExceeded(msg, limit_name="max_json_body_bytes")
+    return raw
+
+
 def validate_json(adapter: TypeAdapter[T], raw: bytes, max_errors: int) -> T:
     """`raw` validated as JSON by `adapter`; InvalidInput listing at most `max_errors` errors."""
     try:
@@ -57,7 +72,7 @@ def JsonBody(model: Any) -> Any:  # noqa: N802 (used like FastAPI's Body(), in A
 
     async def read_body(request: Request) -> Any:
         require_json(request)
-        raw = await request.body()
+        raw = await json_bytes(request)
         services = request.app.state.services
         limit = services.settings.max_validation_errors
         if len(raw) <= INLINE_JSON_BYTES:

@@ -33,6 +33,7 @@ log = logging.getLogger("vlmap.api")
 # Limits whose breach is not a malformed body but a too-large or too-slow one, or too many requests.
 _LIMIT_STATUS = {
     "max_body_bytes": 413,
+    "max_json_body_bytes": 413,
     "body_timeout_s": 408,
     "rate_limit": 429,
     "decode_rate": 429,

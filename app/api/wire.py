@@ -135,9 +135,21 @@ def decode_label_names(labels: list[Any], max_rows: int) -> LabelNames:
 def decode_msgpack_batch(body: bytes, max_voxels: int) -> ObservationBatch:
     """Decode and validate a msgpack observation batch (see the module docstring)."""
     try:
-        envelope = msgpack.unpackb(body, raw=False, strict_map_key=True, max_bin_len=len(body))
+        # The unpacker's own limits refuse what no valid batch holds before building it: a label longer
+        # than MAX_LABEL_CHARS (4 bytes a character in UTF-8), more labels than a batch, a map of more than
+        # its keys.
+        envelope = msgpack.unpackb(
+            body,
+            raw=False,
+            strict_map_key=True,
+            max_bin_len=len(body),
+            max_str_len=4 * MAX_LABEL_CHARS,
+            max_array_len=max(max_voxels, 3),
+            max_map_len=8,
+            max_ext_len=0,
+        )
     except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, TypeError) as exc:
-        msg = f"body is not a msgpack map: {str(exc)[:200]}"
+        msg = f"body is not a msgpack batch within its limits: {str(exc)[:200]}"
         raise InvalidInput(msg, field="body") from exc
     if not isinstance(envelope, dict):
         msg = "body must be a msgpack map"

@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
 
-from app.api.bodies import media_type
+from app.api.bodies import json_bytes, media_type
 from app.api.deps import PrincipalDep, ServicesDep, SettingsDep
 from app.api.errors import error_responses
 from app.api.routes.ground import check_scene_graph
@@ -70,7 +70,7 @@ async def normalize_scene_graph(
     if content_type != "application/json" and not content_type.endswith("+json"):
         msg = f"unsupported content type {content_type!r}; send application/json or application/octet-stream"
         raise UnsupportedMediaType(msg, field="content-type")
-    return await services.run(normalize, await request.body(), False, format, settings)
+    return await services.run(normalize, await json_bytes(request), False, format, settings)
 
 
 def normalize(raw: bytes, binary: bool, fmt: SceneGraphFormat | None, settings: Settings) -> SceneGraph:

@@ -17,7 +17,7 @@ from fastapi import APIRouter, Header, Query, Request, Response
 from pydantic import TypeAdapter
 
 from app.api.auth import Principal
-from app.api.bodies import JsonBody, json_request_body, media_type, schema_ref, validate_json
+from app.api.bodies import JsonBody, json_bytes, json_request_body, media_type, schema_ref, validate_json
 from app.api.deps import PrincipalDep, SensorsDep, ServicesDep, SettingsDep, StoreDep
 from app.api.errors import error_responses
 from app.api.idempotency import IdempotencyKeyHeader, idempotency_of, replay, session_id_for, with_answer
@@ -582,7 +582,7 @@ async def post_observations(
     else:
         msg = f"unsupported content type {content_type!r}: send application/json or application/msgpack"
         raise UnsupportedMediaType(msg, field="content-type")
-    raw = await request.body()
+    raw = await (request.body() if content_type in MSGPACK_TYPES else json_bytes(request))
     idempotency = idempotency_of(request, idempotency_key, raw)
 
     try:
