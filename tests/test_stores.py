@@ -675,6 +675,40 @@ def test_a_session_lock_held_elsewhere_makes_updates_wait_then_give_up(redis_url
     store.close()
 
 
+@pytest.mark.redis
+def test_a_lock_left_by_a_killed_holder_delays_writers_only_by_its_short_ttl(redis_url: str) -> None:
+    """A replica killed mid-update (kill -9) leaves its lock: it lasts the lock's ttl (3 s; the old 30 s made
+    every write wait its full 10 s and give up), since live holders renew theirs."""
+    from app.stores.redis_store import DEFAULT_LOCK_TTL_S
+
+    store = redis_store(redis_url)
+    session = make_session()
+    store.create(session)
+    store._client.set(store._key(session.id, "lock"), "a-killed-replica", px=int(DEFAULT_LOCK_TTL_S * 1000))
+    started = time.monotonic()
+    assert store.apply_detections(session.id, [0.9], flat_idx=np.array([0])).version == 1
+    assert time.monotonic() - started <= DEFAULT_LOCK_TTL_S + 1.0
+    store.close()
+
+
+@pytest.mark.redis
+def test_a_live_lock_holder_keeps_its_lock_past_the_ttl(redis_url: str) -> None:
+    prefix = f"test-{uuid.uuid4().hex[:8]}"
+    holder = redis_store(redis_url, prefix=prefix, lock_ttl_s=0.3)
+    other = redis_store(redis_url, prefix=prefix, lock_wait_s=0.2)
+    holder.create(make_session("held"))
+    with holder._session_lock("held") as token:
+        time.sleep(1.0)  # three ttls of work
+        assert holder._client.get(holder._key("held", "lock")) == token.encode()
+        with pytest.raises(StoreUnavailable):
+            other._update(
+                "held", lambda meta, _: ({}, meta.new_version)
+            )  # a writer that takes the lock waits
+    assert holder._client.get(holder._key("held", "lock")) is None  # released
+    holder.close()
+    other.close()
+
+
 def _layer_reads(commands: list[str]) -> list[str]:
     """The reads of a layer hash among MONITOR's commands."""
     reads = {"HGETALL", "HMGET", "HGET"}
