@@ -35,6 +35,7 @@ bench: $(STAMP)
 	HF_HUB_OFFLINE=1 $(PY) -m bench.ground_latency
 	HF_HUB_OFFLINE=1 $(PY) -m bench.fusion_kernel
 	HF_HUB_OFFLINE=1 $(PY) -m bench.sessions_e2e
+	HF_HUB_OFFLINE=1 $(PY) -m bench.abuse
 	$(MAKE) bench-fleet
 
 # 20 robots + 5 dashboards for 60 s on two replicas sharing Redis, then the faults (needs redis-server).
