@@ -91,7 +91,7 @@ def test_a_long_msgpack_label_is_refused_and_names_cost_their_size(service: tupl
         {"scene_graph": {"objects": [], "regions": [1] * 100_000}, "utterance": "x"},
         {"scene_graph": {"objects": [1] * 100_000}, "utterance": "x"},
         {"scene_graph": {"objects": []}, "utterance": "x", "query_points": [[1, 2, "a"]] * 100_000},
-        {"scene_graph": {"objects": []}, "utterance": "x", "query_points": [[1, 2, 3]] * 200_000},
+        {"scene_graph": {"objects": []}, "utterance": "x", "query_points": [[1, 2, 3]] * 150_000},
     ],
     ids=["regions", "objects", "bad query points", "too many query points"],
 )

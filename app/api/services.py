@@ -245,22 +245,29 @@ class Services:
             idempotency_keys=s.idempotency_keys_per_session,
         )
 
-    @asynccontextmanager
-    async def slot(self, limiter: CapacityLimiter, limit_name: str, what: str) -> AsyncIterator[None]:
-        """Hold one of `limiter`'s slots, waiting up to `busy_wait_s` for one; LimitExceeded (429 with
-        Retry-After) when none frees up in time."""
+    async def take_slot(self, limiter: CapacityLimiter, limit_name: str, what: str) -> Callable[[], None]:
+        """Take one of `limiter`'s slots, waiting up to `busy_wait_s` for one (LimitExceeded, a 429 with
+        Retry-After, when none frees up in time); returns what gives it back (from any task of the loop: a
+        streamed answer gives it back when its last chunk is sent)."""
+        borrower = object()
         try:
-            limiter.acquire_nowait()
+            limiter.acquire_on_behalf_of_nowait(borrower)
         except anyio.WouldBlock:
             with anyio.move_on_after(self.settings.busy_wait_s) as waited:
-                await limiter.acquire()
+                await limiter.acquire_on_behalf_of(borrower)
             if waited.cancelled_caught:
                 msg = f"all {limiter.total_tokens:g} slots for {what} are busy; retry shortly"
                 raise LimitExceeded(msg, limit_name=limit_name, retry_after_s=1.0) from None
+        return partial(limiter.release_on_behalf_of, borrower)
+
+    @asynccontextmanager
+    async def slot(self, limiter: CapacityLimiter, limit_name: str, what: str) -> AsyncIterator[None]:
+        """Hold one of `limiter`'s slots while the block runs (`take_slot`)."""
+        release = await self.take_slot(limiter, limit_name, what)
         try:
             yield
         finally:
-            limiter.release()
+            release()
 
     async def run(self, func: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """Run CPU-bound work in the worker pool so the event loop keeps serving other requests."""

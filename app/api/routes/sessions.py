@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable, Iterator
 from functools import partial
 from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi.responses import StreamingResponse
 from pydantic import TypeAdapter
 
 from app.api.auth import Principal
@@ -49,9 +50,9 @@ from app.api.services import Services, SummaryCache
 from app.api.wire import (
     MSGPACK_TYPES,
     ObservationBatch,
+    belief_grid_stream,
     check_batch_size,
     decode_msgpack_batch,
-    encode_belief_grid,
 )
 from app.belief.grid import VoxelGrid
 from app.belief.session import (
@@ -603,31 +604,50 @@ async def post_observations(
     return await observation_out(store, services, session_id, batch, result, summary)
 
 
-def belief_grid(store: SessionStore, info: SessionInfo, layers: bool) -> tuple[memoryview, int]:
-    """The whole posterior (and layers) as msgpack, with the version it belongs to."""
-    state = store.read_layers(info.id)
-    data = encode_belief_grid(info.id, state.version, state.grid.to_dict(), state.lang, state.vis, layers)
-    return data, state.version
-
-
 def read_belief(
-    store: SessionStore,
-    cache: SummaryCache,
-    principal: Principal,
-    session_id: str,
-    fmt: str,
-    layers: bool,
-    top_k: int,
+    store: SessionStore, cache: SummaryCache, principal: Principal, session_id: str, top_k: int
 ) -> Response:
-    """The belief as `get_belief` answers it when it is neither unchanged nor summarised already."""
+    """The summary as `get_belief` answers it when it is neither unchanged nor summarised already."""
     info = _readable(store, principal, session_id)
-    if fmt == "grid":
-        data, version = belief_grid(store, info, layers)  # the layers may be newer than `info`
-        return Response(data, media_type="application/msgpack", headers={"ETag": etag(version)})
     body = belief_out(store, cache, session_id, top_k, info)
     return Response(
         body.model_dump_json(), media_type="application/json", headers={"ETag": etag(body.version)}
     )
+
+
+def grid_stream(
+    store: SessionStore, principal: Principal, session_id: str, layers: bool
+) -> tuple[int, int, Iterator[bytes]]:
+    """(version, length, chunks) of the whole posterior (and layers) as msgpack, of one consistent copy."""
+    info = _readable(store, principal, session_id)
+    state = store.read_layers(info.id)  # the layers may be newer than `info`
+    length, chunks = belief_grid_stream(
+        info.id, state.version, state.grid.to_dict(), state.lang, state.vis, layers
+    )
+    return state.version, length, chunks
+
+
+async def stream_grid(
+    store: SessionStore, services: Services, principal: Principal, session_id: str, layers: bool
+) -> Response:
+    """The grid download, one of `max_concurrent_grids` at a time, its slot held until the last chunk is sent
+    (or the client hangs up); each chunk is made on a worker thread."""
+    release = await services.take_slot(services.grids, "max_concurrent_grids", "whole-grid downloads")
+    try:
+        version, length, chunks = await services.run(grid_stream, store, principal, session_id, layers)
+    except BaseException:
+        release()
+        raise
+
+    async def body() -> AsyncIterator[bytes]:
+        try:
+            while (chunk := await services.run(next, chunks, None)) is not None:
+                yield chunk
+        finally:
+            release()
+
+    headers = {"ETag": etag(version), "Content-Length": str(length)}
+    return StreamingResponse(body(), media_type="application/msgpack", headers=headers)
 
 
 @router.get(
@@ -668,10 +688,9 @@ async def get_belief(
     tag = etag(version)
     if if_none_match is not None and tag in [t.strip() for t in if_none_match.split(",")]:
         return Response(status_code=304, headers={"ETag": tag})
-    ready = cache.get((session_id, version, top_k)) if format == "summary" else None
+    if format == "grid":
+        return await stream_grid(store, services, principal, session_id, layers)
+    ready = cache.get((session_id, version, top_k))
     if ready is not None:
         return Response(ready.model_dump_json(), media_type="application/json", headers={"ETag": tag})
-    if format == "grid":  # tens of bytes per voxel while encoded: a few at a time
-        async with services.slot(services.grids, "max_concurrent_grids", "whole-grid downloads"):
-            return await services.run(read_belief, store, cache, principal, session_id, format, layers, top_k)
-    return await services.run(read_belief, store, cache, principal, session_id, format, layers, top_k)
+    return await services.run(read_belief, store, cache, principal, session_id, top_k)
