@@ -74,11 +74,11 @@ class VoxelGrid:
         first = np.floor((low - margin) / voxel_size)
         last = np.ceil((high + margin) / voxel_size)
         shape = np.maximum(last - first, 1).astype(np.int64)
-        n_voxels = int(np.prod(shape))
+        n_voxels = math.prod(int(n) for n in shape)  # Python ints: a huge extent must not wrap around
         if n_voxels > max_voxels:
             msg = (
                 f"the scene's extent {np.round(high - low, 2).tolist()} m at {voxel_size} m voxels needs "
-                f"{n_voxels} voxels, more than the limit {max_voxels}; use larger voxels"
+                f"{n_voxels:,} voxels, more than the limit {max_voxels:,}; use larger voxels"
             )
             raise LimitExceeded(msg, "max_voxels")
         return cls(origin=tuple(first * voxel_size), shape=tuple(shape), voxel_size=voxel_size)
