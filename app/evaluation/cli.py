@@ -41,6 +41,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--hdr-samples", type=int, default=5000, help="Monte Carlo draws per mixture HDR (default 5000)"
     )
     static.add_argument("--model-dir", type=Path, default=None, help="LSM checkpoint (default models/lsm)")
+    static.add_argument(
+        "--proposer-params",
+        type=Path,
+        default=None,
+        help="the built-in proposer's params.json (default models/proposer/params.json)",
+    )
     static.add_argument("--llm-url", default=None, help="OpenAI-compatible base URL, e.g. http://host/v1")
     static.add_argument("--llm-model", default=None, help="model name at that endpoint")
     static.add_argument("--out", type=Path, required=True, help="output directory")
@@ -63,6 +69,7 @@ def static_command(args: argparse.Namespace) -> int:
         seed=args.seed,
         hdr_samples=args.hdr_samples,
         model_dir=args.model_dir,
+        proposer_params=args.proposer_params,
         llm=LLMOptions.from_env(args.llm_url, args.llm_model),
         progress=not args.no_progress,
     )

@@ -144,28 +144,33 @@ class LLMOptions:
         return LLMEndpoint(base_url=self.url, model=self.model, api_key=self.api_key)
 
 
-def make_builtin_proposer() -> HypothesisProposer:
-    """The shipped built-in proposer, on the process's one MiniLM (shared with the LSM)."""
+def make_builtin_proposer(params: Path | None = None) -> HypothesisProposer:
+    """The built-in proposer (its parameters from `params`, default the shipped ones), on the process's one
+    MiniLM (shared with the LSM)."""
     from app.grounding.builtin import BuiltinProposer
     from app.lsm.text_encoder import default_text_encoder
 
-    return BuiltinProposer.load(default_text_encoder())
+    return BuiltinProposer.load(default_text_encoder(), params)
 
 
 def make_proposer(
-    name: str, llm: LLMOptions, stack: ExitStack, on_fallback: Callable[[str], None] | None = None
+    name: str,
+    llm: LLMOptions,
+    stack: ExitStack,
+    on_fallback: Callable[[str], None] | None = None,
+    params: Path | None = None,
 ) -> HypothesisProposer | None:
     """None for `gt` (the cases' own hypotheses); clients opened here are closed by `stack`."""
     if name == "gt":
         return None
     if name == "builtin":
-        return make_builtin_proposer()
+        return make_builtin_proposer(params)
     if name == "llm":
         from app.llm.client import ChatClient
         from app.llm.proposer import LLMProposer
 
         client = stack.enter_context(ChatClient(llm.endpoint("--proposer llm")))
-        return LLMProposer(client, make_builtin_proposer(), on_fallback=on_fallback)
+        return LLMProposer(client, make_builtin_proposer(params), on_fallback=on_fallback)
     msg = f"unknown proposer {name!r}; choose from {', '.join(PROPOSERS)}"
     raise InvalidInput(msg, field="--proposer")
 
@@ -722,6 +727,7 @@ class StaticOptions:
     seed: int = 0
     hdr_samples: int = DEFAULT_HDR_SAMPLES
     model_dir: Path | None = None
+    proposer_params: Path | None = None
     llm: LLMOptions = field(default_factory=LLMOptions)
     progress: bool = True
 
@@ -764,7 +770,11 @@ def run_static(options: StaticOptions) -> StaticEvaluation:
     fallbacks: Counter[str] = Counter()
     with ExitStack() as stack:
         proposer = make_proposer(
-            options.proposer, options.llm, stack, on_fallback=lambda reason: fallbacks.update([reason])
+            options.proposer,
+            options.llm,
+            stack,
+            on_fallback=lambda reason: fallbacks.update([reason]),
+            params=options.proposer_params,
         )
         grounders = [
             make_grounder(name, options.llm, stack, options.model_dir)
