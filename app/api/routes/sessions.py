@@ -584,21 +584,21 @@ async def post_observations(
         msg = f"unsupported content type {content_type!r}: send application/json or application/msgpack"
         raise UnsupportedMediaType(msg, field="content-type")
     raw = await (request.body() if content_type in MSGPACK_TYPES else json_bytes(request))
-    idempotency = idempotency_of(request, idempotency_key, raw)
+    keyed = partial(idempotency_of, request, idempotency_key, raw)  # hashes the body: on the thread if large
 
     try:
         if content_type in MSGPACK_TYPES and len(raw) <= INLINE_BATCH_BYTES:
             batch = decode(raw)
-            result = await batch_update(store, principal, session_id, batch, True, idempotency)()
+            result = await batch_update(store, principal, session_id, batch, True, keyed())()
         else:
             # One trip to a worker thread, not two.
             def decode_and_fuse() -> tuple[ObservationBatch, UpdateResult]:
                 batch = decode(raw)
-                return batch, batch_update(store, principal, session_id, batch, False, idempotency)()
+                return batch, batch_update(store, principal, session_id, batch, False, keyed())()
 
             batch, result = await services.run(decode_and_fuse)
     except AlreadyApplied as exc:
-        first = replay(exc.record, idempotency, response)
+        first = replay(exc.record, keyed(), response)
         batch = decode(raw)  # the same body: its stamp is the answer's
         result = UpdateResult(session_id, first.version, first.voxels_updated, first.voxels_outside)
     return await observation_out(store, services, session_id, batch, result, summary)
