@@ -284,6 +284,42 @@ def low_findings(rng: random.Random) -> Iterator[Hostile]:
             yield Hostile("low: grid download", "GET", "/v1/sessions/{sid}/belief?format=grid&layers=true")
 
 
+def queries(rng: random.Random) -> Iterator[Hostile]:
+    """The other endpoints: hostile paths, query strings and methods (listing, reading, polling, deleting,
+    the models, probes and metrics)."""
+    ids = ["..", "%2e%2e", "x" * 5000, "é", "%00", "a/b", "-", "%ff%fe"]
+    params = [
+        "robot_id=" + "x" * rng.randrange(1, 3000),
+        "robot_id=%00",
+        "top_k=-1",
+        "top_k=99999999999999999999",
+        "format=grid&format=summary",
+        "layers=maybe",
+        "format=" + "g" * 300,
+        "unknown=1",
+        "summary=" + "y" * 100,
+    ]
+    while True:
+        sid = rng.choice(ids)
+        method, path = rng.choice(
+            [
+                ("GET", "/v1/sessions?" + rng.choice(params)),
+                ("GET", f"/v1/sessions/{sid}"),
+                ("GET", f"/v1/sessions/{sid}/belief?" + rng.choice(params)),
+                ("GET", "/v1/sessions/{sid}/belief?" + rng.choice(params)),
+                ("DELETE", f"/v1/sessions/{sid}"),
+                ("GET", "/v1/models?" + rng.choice(params)),
+                ("GET", rng.choice(["/healthz", "/readyz", "/metrics"]) + "?" + rng.choice(params)),
+                (
+                    rng.choice(["PATCH", "PUT", "DELETE"]),
+                    rng.choice(["/v1/ground", "/v1/models", "/healthz"]),
+                ),
+            ]
+        )
+        headers = {"if-none-match": rng.choice(['"v1"', "*", "x" * 2000, '"v' + "9" * 50 + '"'])}
+        yield Hostile("queries and paths", method, path, headers=headers)
+
+
 def binaries(rng: random.Random) -> Iterator[Hostile]:
     """Spark-DSG binaries: bytes behind a valid opening (each decode is a child process)."""
     while True:
@@ -308,6 +344,7 @@ CLASSES: dict[str, Callable[[random.Random], Iterator[Hostile]]] = {
     "shapes": msgpack_shapes,
     "utf8": not_utf8,
     "low": low_findings,
+    "queries": queries,
     "binary": binaries,
 }
 #: Inputs of the costly classes, per `per_class` of the others (each decode is a child process).
