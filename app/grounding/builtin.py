@@ -156,7 +156,7 @@ class ProposerParams:
     attribute_weight: float = 3.0  # a prior, not fitted: the training maps carry no attributes
     min_label_similarity: float = 0.7
     sibling_similarity: float = 0.85
-    max_candidates: int = 40
+    max_candidates: int = 500  # per mention: a bound on the work, far above any map's look-alikes
     # Lemmatised target label -> median (dx, dy, dz, centre height above the floor) of the training targets.
     target_boxes: dict[str, list[float]] = field(default_factory=dict)
     default_target_box: tuple[float, float, float, float] = (0.3, 0.3, 0.3, 0.8)
@@ -512,18 +512,15 @@ class BuiltinProposer:
                 self._pair_rows(rows, k, m, mentions, matches, base, spread)
                 continue
             for slot, index in enumerate(matches[k].indices):
-                if not anchor_allowed(relation, objects[index].label):
-                    continue
+                said, vague = _reading(relation, objects[index].label)
                 row = base.copy()
                 row[_COLUMN["qualifier_fit"] - N_GEOMETRY] = fit[slot]
+                if vague:
+                    row[_COLUMN["relation_vague"] - N_GEOMETRY] = 1.0
                 label = matches[k].label_features[slot][None]
                 agreement = float(matches[k].attribute[slot])
-                rows.add((int(index),), relation, label, agreement, row, spread)
-                if (
-                    relation is Relation.NEAR
-                    and n_siblings
-                    and anchor_allowed(Relation.CLOSEST, objects[index].label)
-                ):
+                rows.add((int(index),), said, label, agreement, row, spread or ("vague" if vague else None))
+                if said is Relation.NEAR and n_siblings and not vague:
                     alternative = row.copy()
                     alternative[_COLUMN["reading_closest"] - N_GEOMETRY] = 1.0
                     rows.add((int(index),), Relation.CLOSEST, label, agreement, alternative, None)
@@ -537,15 +534,15 @@ class BuiltinProposer:
             base[_COLUMN["kind_nested"] - N_GEOMETRY] = 1.0
             spread = "view" if m.view_dependent else ("vague" if not m.relation_known else None)
             for slot, index in enumerate(matches[k].indices):
-                if anchor_allowed(relation, objects[index].label):
-                    rows.add(
-                        (int(index),),
-                        relation,
-                        matches[k].label_features[slot][None],
-                        float(matches[k].attribute[slot]),
-                        base,
-                        spread,
-                    )
+                said, vague = _reading(relation, objects[index].label)
+                rows.add(
+                    (int(index),),
+                    said,
+                    matches[k].label_features[slot][None],
+                    float(matches[k].attribute[slot]),
+                    base,
+                    spread or ("vague" if vague else None),
+                )
 
         region_row = np.zeros(len(MENTION_FEATURES))
         region_row[_COLUMN["kind_region"] - N_GEOMETRY] = 1.0
@@ -768,6 +765,15 @@ class BuiltinProposer:
                 while len(self._label_vectors) > LABEL_CACHE_SIZE:
                     del self._label_vectors[next(iter(self._label_vectors))]
             return np.stack([self._label_vectors[n] for n in names]).astype(np.float64)
+
+
+def _reading(relation: Relation, label: str) -> tuple[Relation, bool]:
+    """The relation a hypothesis reads for an anchor, and whether it is a vague stand-in: a relation the
+    label policy (`app.data.relations.anchor_allowed`) does not give this anchor ("on the wall", "above the
+    drawer") is read as "near", widened, never dropped (dropping it would lose the anchor's mass)."""
+    if anchor_allowed(relation, lemmas(label)):
+        return relation, False
+    return Relation.NEAR, relation is not Relation.NEAR
 
 
 def _spread(params: ProposerParams, name: str | None) -> float:

@@ -14,7 +14,8 @@ window" are objects?), the case builder (how may a speaker call a labelled objec
   and the recycling bin). A generic phrase names each of them loosely (`lexical_match` 1), never as the
   same class.
 - `lexical_match(phrase, name)`: 2 for the same class, 1 for a looser naming (the same head noun, "table" and
-  "coffee table", or a generic word), 0 otherwise.
+  "coffee table", or a generic word on either side: the phrase "bag" for a backpack, the map's label
+  "computer" for "the computer tower"), 0 otherwise.
 - `object_nouns()`: the lemmatised names of things indoor maps hold (every label of the training layouts,
   the synonyms and the generic words), the parser's lexicon of possible mentions.
 """
@@ -111,7 +112,7 @@ SYNONYM_GROUPS: tuple[tuple[str, ...], ...] = tuple(
     for group in (
         "couch, sofa, settee",
         "tv, television, tv screen, tv monitor",
-        "refrigerator, fridge",
+        "refrigerator, fridge, refridgerator",
         "mini fridge, small fridge",
         "trash can, garbage can, trash bin, garbage bin, waste bin, wastebasket, rubbish bin, dustbin",
         "recycling bin, recycling",
@@ -249,7 +250,7 @@ def lexical_match(phrase: str, name: str) -> int:
         return 0
     if same_class(phrase, name):
         return 2
-    if head_noun(phrase) == head_noun(name) or _generic_covers(phrase, name):
+    if head_noun(phrase) == head_noun(name) or _generic_covers(phrase, name) or _generic_covers(name, phrase):
         return 1
     return 0
 
