@@ -266,7 +266,7 @@ _NOUN_PHRASE_GAP = (
 )
 # Names in the vocabulary that in an utterance name a place or nothing in particular, not an object.
 _NOT_MENTIONS = frozenset(
-    {"corner", "object", "thing", "item", "can", "hanging", "recycling", *(lemmas(w) for w in ROOM_WORDS)}
+    {"corner", "object", "thing", "item", "can", "hanging", *(lemmas(w) for w in ROOM_WORDS)}
 )
 # Words after a relation phrase that name a side or a part of the view, not an object ("on the far left").
 _PLACE_WORDS = _words("far left right side top bottom end middle center centre corner front back edge way")

@@ -250,7 +250,14 @@ def lexical_match(phrase: str, name: str) -> int:
         return 0
     if same_class(phrase, name):
         return 2
-    if head_noun(phrase) == head_noun(name) or _generic_covers(phrase, name) or _generic_covers(name, phrase):
+    looser = (
+        head_noun(phrase) == head_noun(name)
+        or same_class(head_noun(phrase), name)  # "mini fridge" for a "refrigerator"
+        or same_class(phrase, head_noun(name))
+        or _generic_covers(phrase, name)
+        or _generic_covers(name, phrase)
+    )
+    if looser:
         return 1
     return 0
 
