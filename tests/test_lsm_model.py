@@ -455,17 +455,19 @@ def test_grounder_describe_names_the_weights(tiny_checkpoint, encoder):
 
 
 def test_shipped_model_grounds_every_relation(encoder, cases):
-    """The weights in models/lsm load and give a PD Gaussian near the anchors for each fixture case."""
+    """The weights in models/lsm load and give a core and a tail near the anchors for each fixture case."""
     grounder = LSMGrounder.load(DEFAULT_MODEL_DIR, encoder=encoder)
     assert (DEFAULT_MODEL_DIR / "MODEL_CARD.md").is_file()
-    assert set(grounder.calibration["per_relation"]) >= {"on", "in", "near", "between", "above", "below"}
+    assert grounder.model.cfg.tail and grounder.model.cfg.contained_in and grounder.model.cfg.resting_on
+    assert set(grounder.calibration["per_relation"]) >= {*(r.value for r in Relation), "region"}
     for case in cases:
         truth = case.hypotheses[0]
         hypothesis = Hypothesis(anchor_ids=tuple(truth.anchor_ids), relation=truth.relation)
-        ((g,),) = (d.components for d in grounder.ground(case.scene_graph, case.utterance, [hypothesis]))
-        assert np.all(np.linalg.eigvalsh(g.covariance) > 0)
+        (density,) = grounder.ground(case.scene_graph, case.utterance, [hypothesis])
+        assert len(density.weights) == 2 and density.weights[1] < 0.5
+        assert np.all(np.linalg.eigvalsh(density.covariances) > 0)
         anchors = np.array([case.scene_graph.object(i).center for i in truth.anchor_ids])
-        assert np.linalg.norm(g.mean - anchors.mean(axis=0)) < 3.0
+        assert np.linalg.norm(density.mean() - anchors.mean(axis=0)) < 3.0
 
 
 def _gaussians(means: np.ndarray, covs: np.ndarray) -> Densities:
