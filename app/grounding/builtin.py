@@ -420,13 +420,21 @@ class BuiltinProposer:
         extra = {"candidates": float(len(weights))}
         if found.region_ignored:
             extra["region_ignored"] = 1.0
+        background = params.background_weight(found.utterance_features)
+        ranked = [hypotheses[i] for i in order]
+        if found.avoid:
+            # Under a negation "somewhere in the room" is the broad term with the negated areas carved out;
+            # the grounder's region density would put its usual mass back on them ("not on the table").
+            region_weight = sum(h.weight for h in ranked if not h.anchor_ids)
+            ranked = [h for h in ranked if h.anchor_ids]
+            background += (1.0 - background) * region_weight
         return Proposal(
             parse,
-            tuple(hypotheses[i] for i in order),
+            tuple(ranked),
             grounded=found.reason is None,
             reason=found.reason,
             extra=extra,
-            background=params.background_weight(found.utterance_features),
+            background=background,
             avoid=found.avoid,
         )
 

@@ -106,7 +106,7 @@ class LanguageSensor:
         timings = {} if timings is None else timings
         beta = min(1.0, max(0.0, proposal.background))
         if not proposal.hypotheses or beta >= 1.0:
-            prior = broad_prior(scene_graph, proposal.parse)
+            prior = broad_term(1.0, scene_graph, proposal)
             return Grounding(proposal, (), prior, timings, background=1.0, broad=prior)
         ranked = sorted(proposal.hypotheses, key=lambda h: -h.weight)
         grounded, rest = ranked[: self.max_grounded], ranked[self.max_grounded :]

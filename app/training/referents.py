@@ -483,8 +483,15 @@ def fit_proposer(
         params = fit_parameters(fit_batch, l2, gamma, attribute_weight)
         with torch.no_grad():
             held = float(-_log_density(params, held_batch, attribute_weight)[0].mean())
+        if not math.isfinite(held):
+            # L-BFGS can step into a non-finite region under a strong penalty; such a fit is not a candidate.
+            log.warning("lambda %g: the fit diverged (held-out -log p(y) %s); not a candidate", l2, held)
+            held = math.inf
         trials.append((held, l2, params))
         log.info("lambda %g: held-out -log p(y) %.4f", l2, held)
+    if not any(math.isfinite(t[0]) for t in trials):
+        msg = f"every fit diverged (lambda grid {list(l2_grid)})"
+        raise RuntimeError(msg)
     _, l2, params = min(trials, key=lambda t: t[0])
     temperature = fit_temperature(params, held_batch, attribute_weight)
     report = {
@@ -495,7 +502,7 @@ def fit_proposer(
         },
         "skipped": skipped,
         "l2": l2,
-        "l2_trials": {str(t[1]): t[0] for t in trials},
+        "l2_trials": {str(t[1]): (t[0] if math.isfinite(t[0]) else None) for t in trials},
         "gamma": gamma,
         "temperature": temperature,
         "held_out": summarise(params, held_batch, prepared["held_out"], attribute_weight, temperature),
