@@ -9,11 +9,14 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
 from app.api.app import create_app
 from app.api.launcher import RedisServer
+from app.lsm.features import rotation_z
+from app.scene_graph.model import SceneGraph
 from app.settings import Settings
 
 RESOURCES = Path(__file__).parent / "resources"
@@ -89,3 +92,20 @@ def redis_cluster_url() -> str:
             "no Redis Cluster: set VLMAP_TEST_REDIS_CLUSTER_URL (.ci/run starts one on ports 7000-7005)"
         )
     return given
+
+
+def moved_scene(scene_graph: SceneGraph, yaw: float, offset: np.ndarray) -> SceneGraph:
+    """The whole scene turned by `yaw` about the origin and shifted by `offset` (regions dropped: an
+    axis-aligned region box does not stay one under a turn)."""
+    turn = rotation_z(yaw)
+    objects = [
+        o.model_copy(
+            update={
+                "center": (turn @ np.asarray(o.center) + offset).tolist(),
+                "yaw": o.yaw + yaw,
+                "region_id": None,
+            }
+        )
+        for o in scene_graph.objects
+    ]
+    return scene_graph.model_copy(update={"objects": objects, "regions": []})

@@ -45,6 +45,7 @@ from app.lsm.model import (
 from app.lsm.text_encoder import MINILM_SHA256, TextEncoder, file_sha256
 from app.lsm.train import Densities, apply_calibration, fit_calibration, predict
 from app.scene_graph.model import SceneGraph
+from tests.conftest import moved_scene
 
 CASES = Path(__file__).parent / "resources" / "lsm" / "cases.jsonl"
 TINY = {
@@ -290,23 +291,6 @@ def test_make_sample_rejects_unknown_anchor(cases):
         make_sample(cases[0].scene_graph, ["no-such-object"], Relation.ON, "x", LSMConfig(**TINY))
 
 
-def _moved(scene_graph: SceneGraph, yaw: float, offset: np.ndarray) -> SceneGraph:
-    """The whole scene turned by `yaw` about the origin and shifted by `offset` (regions dropped: an
-    axis-aligned region box does not stay one under a turn)."""
-    turn = rotation_z(yaw)
-    objects = [
-        o.model_copy(
-            update={
-                "center": (turn @ np.asarray(o.center) + offset).tolist(),
-                "yaw": o.yaw + yaw,
-                "region_id": None,
-            }
-        )
-        for o in scene_graph.objects
-    ]
-    return scene_graph.model_copy(update={"objects": objects, "regions": []})
-
-
 @pytest.mark.parametrize(
     ("yaw", "offset"),
     [
@@ -321,8 +305,8 @@ def test_predictions_move_with_the_scene(tiny_checkpoint, encoder, cases, yaw, o
     rigid motion: the model sees only the local frame."""
     grounder = LSMGrounder.load(tiny_checkpoint, encoder=encoder)
     case = cases[5]
-    still = _moved(case.scene_graph, 0.0, np.zeros(3))
-    moved = _moved(case.scene_graph, yaw, np.asarray(offset))
+    still = moved_scene(case.scene_graph, 0.0, np.zeros(3))
+    moved = moved_scene(case.scene_graph, yaw, np.asarray(offset))
     sofa, tv_stand = case.hypotheses[0].anchor_ids
     hypotheses = [
         Hypothesis((sofa, tv_stand), Relation.BETWEEN),
@@ -533,7 +517,7 @@ def test_scene_arrays_match_the_scene_graph():
     bottoms = [o.min_corner[2] for o in scene_graph.objects]
     assert arrays.floor_z == pytest.approx(np.percentile(bottoms, 10))
     assert arrays.dominant_yaw == 0.0
-    turned = SceneArrays.of(_moved(scene_graph, 0.4, np.zeros(3)))
+    turned = SceneArrays.of(moved_scene(scene_graph, 0.4, np.zeros(3)))
     assert turned.dominant_yaw == pytest.approx(0.4)
     np.testing.assert_allclose(turned.map_box[1], arrays.map_box[1], atol=1e-9)
     assert turned.floor_z == pytest.approx(arrays.floor_z)

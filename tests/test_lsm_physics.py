@@ -20,6 +20,7 @@ from app.lsm.features import rotation_z
 from app.lsm.grounder import LSMGrounder
 from app.lsm.text_encoder import TextEncoder
 from app.scene_graph.model import SceneGraph, SceneObject
+from tests.conftest import moved_scene
 
 RESOURCES = Path(__file__).parent / "resources"
 #: Anchors with a plain top surface that things rest on (not shelves or seats, which hold them inside).
@@ -46,21 +47,6 @@ def _rooms() -> list[SceneGraph]:
     return [*rooms, case.scene_graph]
 
 
-def _moved(scene_graph: SceneGraph, yaw: float, offset: np.ndarray) -> SceneGraph:
-    turn = rotation_z(yaw)
-    objects = [
-        o.model_copy(
-            update={
-                "center": (turn @ np.asarray(o.center) + offset).tolist(),
-                "yaw": o.yaw + yaw,
-                "region_id": None,
-            }
-        )
-        for o in scene_graph.objects
-    ]
-    return scene_graph.model_copy(update={"objects": objects, "regions": []})
-
-
 @pytest.fixture(scope="module")
 def grounder() -> LSMGrounder:
     return LSMGrounder.load(encoder=TextEncoder())
@@ -72,7 +58,7 @@ def _frames() -> list[tuple[SceneGraph, float, np.ndarray]]:
     for room in _rooms():
         out.append((room, 0.0, np.zeros(3)))
         offset = np.array([40.0, -13.0, 2.5])
-        out.append((_moved(room, 0.7, offset), 0.7, offset))
+        out.append((moved_scene(room, 0.7, offset), 0.7, offset))
     return out
 
 
@@ -165,7 +151,7 @@ def test_a_word_that_does_not_constrain_position_moves_the_mean_by_less_than_5_c
 def test_the_shipped_model_moves_with_the_scene(grounder: LSMGrounder) -> None:
     """Yaw, offset and floor height of the whole scene: the same density, moved by the same motion."""
     room = _rooms()[1]
-    still = _moved(room, 0.0, np.zeros(3))
+    still = moved_scene(room, 0.0, np.zeros(3))
     anchors = [o.id for o in _anchors(room, SURFACES)][:2]
     hypotheses = [
         Hypothesis((a,), r) for a in anchors for r in (Relation.ON, Relation.NEAR, Relation.FARTHEST)
@@ -178,7 +164,7 @@ def test_the_shipped_model_moves_with_the_scene(grounder: LSMGrounder) -> None:
         (math.pi, np.zeros(3)),
     ):
         turn = rotation_z(yaw)
-        after = grounder.ground(_moved(room, yaw, offset), "the cup is on the table", hypotheses)
+        after = grounder.ground(moved_scene(room, yaw, offset), "the cup is on the table", hypotheses)
         for a, b in zip(before, after, strict=True):
             np.testing.assert_allclose(b.means, a.means @ turn.T + offset, atol=1e-4)
             np.testing.assert_allclose(b.covariances, turn @ a.covariances @ turn.T, atol=1e-6)

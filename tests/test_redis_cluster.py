@@ -5,7 +5,6 @@ shares runs on the cluster too (the `store` fixture of tests/test_stores.py)."""
 
 from __future__ import annotations
 
-import threading
 import time
 from typing import Any
 
@@ -15,7 +14,7 @@ import pytest
 from app.api.launcher import start_service, wait_ready
 from app.client import VLMapClient
 from tests.conftest import load_resource_json
-from tests.test_sessions_processes import MODEL_FREE, create, make_batches, sequential_sum
+from tests.test_sessions_processes import MODEL_FREE, create, make_batches, retried_stream, sequential_sum
 from tests.test_stores import make_session, redis_store
 
 pytestmark = pytest.mark.redis
@@ -70,19 +69,7 @@ def test_a_failover_of_the_master_holding_a_session_mid_stream_applies_every_bat
         wait_ready(url, proc)
         session_id, shape = create(url, scene)
         batches = make_batches(shape, seed=5)[:300]
-        acknowledged: list[int] = []
-
-        def stream() -> None:
-            with VLMapClient(url, timeout_s=10.0, retries=40, backoff_s=0.1) as client:
-                for i, (ijk, labels) in enumerate(batches):
-                    client.send_observations(session_id, summary=False, voxels=ijk, labels=labels)
-                    acknowledged.append(i)
-
-        sender = threading.Thread(target=stream)
-        sender.start()
-        while len(acknowledged) < 100:
-            sender.join(timeout=0.01)
-            assert sender.is_alive(), "the stream ended before the failover"
+        sender, acknowledged = retried_stream(url, session_id, batches, timeout_s=10.0, wait_for=100)
         replica = _replica_of(probe._client, probe._key(session_id, "meta"))
         replica.execute_command("CLUSTER FAILOVER")  # the replica takes over, the master becomes its replica
         deadline = time.monotonic() + 30

@@ -166,6 +166,27 @@ MODEL_FREE = {
 }
 
 
+def retried_stream(
+    url: str, session_id: str, batches: list[tuple[np.ndarray, np.ndarray]], timeout_s: float, wait_for: int
+) -> tuple[threading.Thread, list[int]]:
+    """A robot's stream on a thread: every batch sent with its Idempotency-Key and retried until acknowledged;
+    returns once `wait_for` batches are acknowledged, with the thread and the acknowledged indices."""
+    acknowledged: list[int] = []
+
+    def stream() -> None:
+        with VLMapClient(url, timeout_s=timeout_s, retries=40, backoff_s=0.1) as client:
+            for i, (ijk, labels) in enumerate(batches):
+                client.send_observations(session_id, summary=False, voxels=ijk, labels=labels)
+                acknowledged.append(i)
+
+    sender = threading.Thread(target=stream)
+    sender.start()
+    while len(acknowledged) < wait_for:
+        sender.join(timeout=0.01)
+        assert sender.is_alive(), "the stream ended early"
+    return sender, acknowledged
+
+
 def stream_through_a_kill(env: dict[str, str], scene: dict[str, Any], seed: int) -> None:
     """A robot streams batches (each with its Idempotency-Key, retried until acknowledged) to a replica that
     is killed with SIGKILL mid-stream and restarted on its port: every batch is applied exactly once, the one
@@ -175,19 +196,7 @@ def stream_through_a_kill(env: dict[str, str], scene: dict[str, Any], seed: int)
         wait_ready(url, proc)
         session_id, shape = create(url, scene)
         batches = make_batches(shape, seed=seed)[:300]
-        acknowledged: list[int] = []
-
-        def stream() -> None:
-            with VLMapClient(url, timeout_s=5.0, retries=40, backoff_s=0.1) as client:
-                for i, (ijk, labels) in enumerate(batches):
-                    client.send_observations(session_id, summary=False, voxels=ijk, labels=labels)
-                    acknowledged.append(i)
-
-        sender = threading.Thread(target=stream)
-        sender.start()
-        while len(acknowledged) < 100:
-            sender.join(timeout=0.01)
-            assert sender.is_alive(), "the stream ended before the kill"
+        sender, acknowledged = retried_stream(url, session_id, batches, timeout_s=5.0, wait_for=100)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
         proc, url = start_service(env, port=int(url.rsplit(":", 1)[1]))

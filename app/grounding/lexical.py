@@ -11,35 +11,10 @@ import itertools
 import numpy as np
 
 from app.grounding.hypotheses import Hypothesis, Proposal, UtteranceParse
-from app.grounding.parsing import normalise, parse_utterance
+from app.grounding.parsing import parse_utterance
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, SceneObject
-
-_IRREGULAR_PLURALS = {
-    "shelves": "shelf",
-    "halves": "half",
-    "knives": "knife",
-    "leaves": "leaf",
-    "wolves": "wolf",
-    "people": "person",
-}
-
-
-def singular(word: str) -> str:
-    """Rough English singular of one word ("boxes" -> "box", "chairs" -> "chair", "glass" stays)."""
-    if word in _IRREGULAR_PLURALS:
-        return _IRREGULAR_PLURALS[word]
-    if len(word) > 4 and word.endswith("ies"):
-        return word[:-3] + "y"
-    if len(word) > 3 and word.endswith(("ches", "shes", "xes", "sses")):
-        return word[:-2]
-    if len(word) > 2 and word.endswith("s") and not word.endswith(("ss", "us", "is")):
-        return word[:-1]
-    return word
-
-
-def label_tokens(text: str) -> tuple[str, ...]:
-    return tuple(singular(w) for w in normalise(text.replace("_", " ")).split())
+from app.vocabulary import label_tokens, normalise
 
 
 def match_score(anchor_phrase: str, label: str) -> int:
