@@ -30,7 +30,7 @@ from app.data.build import (
 from app.data.cases import GroundingCase, read_cases
 from app.data.conventions import Convention, holds
 from app.data.label_vocabularies import SCANNET_TO_NYU
-from app.data.relations import Box, Grounding, true_groundings
+from app.data.relations import Box, TrueReading, true_groundings
 from app.data.templates import RELATION_PHRASES, indefinite, is_plural, render_utterance, speaker_names
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneObject
@@ -114,8 +114,8 @@ def test_near_is_a_surface_distance_and_excludes_on():
     assert not rel.is_near(box([2.0, 0, 0.3], [0.2, 0.2, 0.2]), TABLE)  # 1.4 m
     mug = obj("m", "mug", [0.2, 0.1, 0.8], [0.1, 0.1, 0.1])
     found = true_groundings(mug, [obj("t", "table", [0, 0, 0.375], [1, 1, 0.75])])
-    assert Grounding(Relation.ON, ("t",)) in found
-    assert Grounding(Relation.NEAR, ("t",)) not in found
+    assert TrueReading(Relation.ON, ("t",)) in found
+    assert TrueReading(Relation.NEAR, ("t",)) not in found
 
 
 def test_between_lies_in_the_gap_close_to_the_segment():
@@ -378,7 +378,7 @@ def test_relations_hold_in_the_canonical_frame_by_their_convention(built):
             )
         ):
             continue  # AI2-THOR's on/in come from its parent receptacles (next test)
-        grounding = Grounding(hyp.relation, tuple(hyp.anchor_ids))
+        grounding = TrueReading(hyp.relation, tuple(hyp.anchor_ids))
         objects = case.scene_graph.objects
         assert holds(convention, grounding, _target_object(case), objects, _region_volume(case)), case.case_id
 

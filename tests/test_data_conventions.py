@@ -14,7 +14,7 @@ from app.data.conventions import (
     sr3d_in_center,
     sr3d_next_to,
 )
-from app.data.relations import Box, Grounding
+from app.data.relations import Box, TrueReading
 from app.data.templates import SR3D_NEXT_TO_PHRASES, VLA3D_PHRASES, render_sr3d, render_vla3d
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneObject
@@ -28,12 +28,12 @@ def obj(id_: str, label: str, lo: list[float], hi: list[float]) -> SceneObject:
     return SceneObject(id=id_, label=label, center=c, size=[b - a for a, b in zip(lo, hi, strict=True)])
 
 
-def found(convention: Convention, target: SceneObject, others: list[SceneObject], **kw) -> set[Grounding]:
+def found(convention: Convention, target: SceneObject, others: list[SceneObject], **kw) -> set[TrueReading]:
     return set(groundings(convention, target, others, **kw))
 
 
-def g(relation: Relation, *anchors: str) -> Grounding:
-    return Grounding(relation, anchors)
+def g(relation: Relation, *anchors: str) -> TrueReading:
+    return TrueReading(relation, anchors)
 
 
 # --- predicates that only other conventions use -------------------------------------------------------------
@@ -158,7 +158,7 @@ def test_sr3d_support_above_below_for_a_unique_pair_of_classes():
     other_book = obj("b2", "book", [3.0, 3.0, 0.0], [3.2, 3.3, 0.05])
     vertical = {Relation.ON, Relation.ABOVE, Relation.BELOW}
 
-    def found_vertical(target: SceneObject, others: list[SceneObject]) -> set[Grounding]:
+    def found_vertical(target: SceneObject, others: list[SceneObject]) -> set[TrueReading]:
         return {x for x in found(SR3D, target, others) if x.relation in vertical}
 
     assert found_vertical(book, [table, other_book]) == {g(Relation.ON, "t")}

@@ -28,6 +28,7 @@ import numpy as np
 from app.api.schemas import MAX_LABEL_CHARS
 from app.belief.session import LabelNames
 from app.errors import InvalidInput, LimitExceeded
+from app.stores.base import pack_array  # the one {dtype, shape, data} codec, the stores' too
 
 MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
 
@@ -80,13 +81,6 @@ class ObservationBatch:
 
     def __len__(self) -> int:
         return len(self.voxels if self.voxels is not None else self.points)  # type: ignore[arg-type]
-
-
-def pack_array(array: np.ndarray) -> dict[str, Any]:
-    """{dtype, shape, data}: the array's little-endian bytes."""
-    arr = np.ascontiguousarray(array)
-    arr = arr.astype(arr.dtype.newbyteorder("<"), copy=False)
-    return {"dtype": arr.dtype.str, "shape": list(arr.shape), "data": arr.tobytes()}
 
 
 def unpack_array(packed: Any, field: str, max_rows: int) -> np.ndarray:

@@ -66,7 +66,7 @@ from app.data.layouts import (
     split_camel_case,
     thor_placement_relation,
 )
-from app.data.relations import Grounding
+from app.data.relations import TrueReading
 from app.data.templates import render_sr3d, render_utterance, render_vla3d
 from app.errors import InvalidInput
 from app.grounding.relations import Relation
@@ -265,7 +265,7 @@ class _Candidate:
     split: str
     convention: Convention
     others: list[SceneObject]
-    by_relation: dict[Relation, list[Grounding]]
+    by_relation: dict[Relation, list[TrueReading]]
 
 
 def _draw_convention(
@@ -311,7 +311,7 @@ def _target_box(target: SceneObject, motion: FrameMotion) -> SceneObject:
 def _case(
     layout: MapLayout,
     candidate: _Candidate,
-    grounding: Grounding,
+    grounding: TrueReading,
     utterance: str,
     augmentation: int,
     shift: Shift | None,
@@ -403,7 +403,7 @@ def _map_cases(
             notes["targets_outside_every_convention"] += 1
             continue
         placements = None if layout.placements is None else layout.placements.get(target_id, {})
-        by_relation: dict[Relation, list[Grounding]] = defaultdict(list)
+        by_relation: dict[Relation, list[TrueReading]] = defaultdict(list)
         found = groundings(
             convention,
             target,

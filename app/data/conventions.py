@@ -103,9 +103,9 @@ from app.data.relations import (
     ROUND_OFF,
     BeneathRule,
     Box,
-    Grounding,
     InRule,
     OnRule,
+    TrueReading,
     VerticalRule,
     anchor_allowed,
     axis_between,
@@ -274,7 +274,7 @@ def sr3d_context_ok(target: SceneObject, others: Sequence[SceneObject]) -> bool:
     return 2 <= n <= SR3D_MAX_CONTEXT
 
 
-def _sr3d(target: SceneObject, others: Sequence[SceneObject]) -> list[Grounding]:
+def _sr3d(target: SceneObject, others: Sequence[SceneObject]) -> list[TrueReading]:
     if not others or not sr3d_context_ok(target, others):
         return []
     labels = [o.label for o in others]
@@ -285,15 +285,15 @@ def _sr3d(target: SceneObject, others: Sequence[SceneObject]) -> list[Grounding]
     same = np.array([k == class_key(target.label) for k in keys])
     siblings = boxes.take(same)
     unique = np.array([counts[k] == 1 for k in keys])
-    out: list[Grounding] = []
+    out: list[TrueReading] = []
 
     proximity = ~same & unique & ~_mask(labels, SR3D_PROXIMITY_EXCLUDED)
     near_idx = np.flatnonzero(proximity & _allowed(Relation.CLOSEST, labels))
     closest, farthest = ordinal_relations(
         tbox, siblings, boxes.take(near_idx), min_gap=SR3D_HORIZONTAL_GAP, min_ratio=0.0, surface=True
     )
-    out += [Grounding(Relation.CLOSEST, (ids[k],)) for k in near_idx[closest].tolist()]
-    out += [Grounding(Relation.FARTHEST, (ids[k],)) for k in near_idx[farthest].tolist()]
+    out += [TrueReading(Relation.CLOSEST, (ids[k],)) for k in near_idx[closest].tolist()]
+    out += [TrueReading(Relation.FARTHEST, (ids[k],)) for k in near_idx[farthest].tolist()]
 
     out += _sr3d_vertical(target, tbox, boxes, siblings, labels, keys, counts, same, ids)
 
@@ -317,7 +317,7 @@ def _sr3d(target: SceneObject, others: Sequence[SceneObject]) -> list[Grounding]
             occ = hull_occupancy(siblings.expand(1), a1.take(hit).expand(0), a2.take(hit).expand(0))
             hit[hit] = np.all(occ <= SR3D_BETWEEN_AMBIGUOUS_OCCUPANCY, axis=0)
         out += [
-            Grounding(Relation.BETWEEN, (ids[a], ids[b]))
+            TrueReading(Relation.BETWEEN, (ids[a], ids[b]))
             for a, b in zip(first[hit].tolist(), second[hit].tolist(), strict=True)
         ]
     return out
@@ -333,7 +333,7 @@ def _sr3d_vertical(
     counts: Counter[str],
     same: np.ndarray,
     ids: Sequence[str],
-) -> list[Grounding]:
+) -> list[TrueReading]:
     group = _stack(tbox, siblings)  # (1 + S, 3): the target's class, target first
     vols = np.prod(group.size, axis=-1)
     inter = volume_overlap(group.expand(1), group.expand(0))  # (1 + S, 1 + S)
@@ -361,13 +361,13 @@ def _sr3d_vertical(
         if pairs_per_class[keys[k]] != 1:
             continue
         if supported_by[0, k]:
-            out.append(Grounding(Relation.ON, (ids[k],)))
+            out.append(TrueReading(Relation.ON, (ids[k],)))
         elif supporting[0, k]:
             continue
         elif above[0, k]:
-            out.append(Grounding(Relation.ABOVE, (ids[k],)))
+            out.append(TrueReading(Relation.ABOVE, (ids[k],)))
         else:
-            out.append(Grounding(Relation.BELOW, (ids[k],)))
+            out.append(TrueReading(Relation.BELOW, (ids[k],)))
     return out
 
 
@@ -423,7 +423,7 @@ def _vla3d_binary(
     }
 
 
-def _vla3d(target: SceneObject, others: Sequence[SceneObject], region_volume: float) -> list[Grounding]:
+def _vla3d(target: SceneObject, others: Sequence[SceneObject], region_volume: float) -> list[TrueReading]:
     if not others or _member(target.label, VLA3D_EXCLUDED):
         return []
     labels = [o.label for o in others]
@@ -433,7 +433,7 @@ def _vla3d(target: SceneObject, others: Sequence[SceneObject], region_volume: fl
     same = np.array([class_key(lab) == key for lab in labels])
     siblings = boxes.take(same)
     anchors = ~same & ~_mask(labels, VLA3D_EXCLUDED) & np.array([not is_room_shell(lab) for lab in labels])
-    out: list[Grounding] = []
+    out: list[TrueReading] = []
     masks = _vla3d_binary(tbox, boxes, labels, target.label, region_volume)
     rivals = (
         _vla3d_binary(siblings.expand(1), boxes.expand(0), labels, target.label, region_volume)
@@ -444,7 +444,7 @@ def _vla3d(target: SceneObject, others: Sequence[SceneObject], region_volume: fl
         hit = mask & anchors
         if relation in rivals:
             hit &= ~rivals[relation].any(axis=0)
-        out += [Grounding(relation, (ids[k],)) for k in np.flatnonzero(hit).tolist()]
+        out += [TrueReading(relation, (ids[k],)) for k in np.flatnonzero(hit).tolist()]
 
     pair_idx = np.flatnonzero(anchors)
     if pair_idx.size >= 2:
@@ -462,7 +462,7 @@ def _vla3d(target: SceneObject, others: Sequence[SceneObject], region_volume: fl
             rival = axis_between(siblings.expand(1), a1.take(hit).expand(0), a2.take(hit).expand(0), **rule)
             hit[hit] = ~rival.any(axis=0)  # rival: (S, P)
         out += [
-            Grounding(Relation.BETWEEN, (ids[a], ids[b]))
+            TrueReading(Relation.BETWEEN, (ids[a], ids[b]))
             for a, b in zip(first[hit].tolist(), second[hit].tolist(), strict=True)
         ]
 
@@ -471,8 +471,8 @@ def _vla3d(target: SceneObject, others: Sequence[SceneObject], region_volume: fl
         closest, farthest = ranked_ordinal_relations(
             tbox, siblings, boxes.take(ord_idx), depth=VLA3D_ORDERED_DEPTH, min_scaled_gap=VLA3D_ORDERED_THRES
         )
-        out += [Grounding(Relation.CLOSEST, (ids[k],)) for k in ord_idx[closest].tolist()]
-        out += [Grounding(Relation.FARTHEST, (ids[k],)) for k in ord_idx[farthest].tolist()]
+        out += [TrueReading(Relation.CLOSEST, (ids[k],)) for k in ord_idx[closest].tolist()]
+        out += [TrueReading(Relation.FARTHEST, (ids[k],)) for k in ord_idx[farthest].tolist()]
     return out
 
 
@@ -483,7 +483,7 @@ def groundings(
     *,
     placements: Mapping[str, Relation] | None = None,
     region_volume: float | None = None,
-) -> list[Grounding]:
+) -> list[TrueReading]:
     """Every (relation, anchor(s)) reading of the target's place among `others` (the target excluded) that
     the convention makes true.
 
@@ -503,7 +503,7 @@ def groundings(
 
 def holds(
     convention: Convention,
-    grounding: Grounding,
+    grounding: TrueReading,
     target: SceneObject,
     objects: Sequence[SceneObject],
     region_volume: float | None = None,

@@ -171,7 +171,7 @@ class Box:
 
 
 @dataclass(frozen=True)
-class Grounding:
+class TrueReading:
     """One true reading of a target's place: it stands in `relation` to the anchor object(s)."""
 
     relation: Relation
@@ -684,7 +684,7 @@ def true_groundings(
     target: SceneObject,
     others: Sequence[SceneObject],
     placements: Mapping[str, Relation] | None = None,
-) -> list[Grounding]:
+) -> list[TrueReading]:
     """Every true (relation, anchor(s)) reading of the target's place among `others` (the target excluded),
     by the vlmap convention.
 
@@ -722,7 +722,7 @@ def true_groundings(
         Relation.BELOW: is_below(tbox, boxes, clearance) & allowed(Relation.BELOW),
         Relation.NEAR: is_near(tbox, boxes) & allowed(Relation.NEAR) & ~supported,
     }
-    out = [Grounding(rel, (ids[i],)) for rel, mask in masks.items() for i in np.flatnonzero(mask).tolist()]
+    out = [TrueReading(rel, (ids[i],)) for rel, mask in masks.items() for i in np.flatnonzero(mask).tolist()]
 
     idx = np.flatnonzero(allowed(Relation.BETWEEN))
     if idx.size >= 2:
@@ -730,19 +730,19 @@ def true_groundings(
         first, second = idx[i], idx[j]
         hit = is_between(tbox, boxes.take(first), boxes.take(second))
         out.extend(
-            Grounding(Relation.BETWEEN, (ids[a], ids[b]))
+            TrueReading(Relation.BETWEEN, (ids[a], ids[b]))
             for a, b in zip(first[hit].tolist(), second[hit].tolist(), strict=True)
         )
 
     if same.any():
         ord_idx = np.flatnonzero(allowed(Relation.CLOSEST))
         closest, farthest = ordinal_relations(tbox, boxes.take(same), boxes.take(ord_idx))
-        out.extend(Grounding(Relation.CLOSEST, (ids[k],)) for k in ord_idx[closest].tolist())
-        out.extend(Grounding(Relation.FARTHEST, (ids[k],)) for k in ord_idx[farthest].tolist())
+        out.extend(TrueReading(Relation.CLOSEST, (ids[k],)) for k in ord_idx[closest].tolist())
+        out.extend(TrueReading(Relation.FARTHEST, (ids[k],)) for k in ord_idx[farthest].tolist())
     return out
 
 
-def holds(grounding: Grounding, target: SceneObject, graph_objects: Iterable[SceneObject]) -> bool:
+def holds(grounding: TrueReading, target: SceneObject, graph_objects: Iterable[SceneObject]) -> bool:
     """Whether a box-computed grounding is geometrically true for the target among `graph_objects`.
 
     Re-derives the relation with the predicates above (used to check built cases and rigid motions); on/in
