@@ -21,15 +21,16 @@ from app.grounding.builtin import (
     REGION,
     BuiltinProposer,
     ProposerParams,
-    regions_for_phrase,
 )
 from app.grounding.geometric import GeometricGrounder
 from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT
 from app.grounding.interfaces import HypothesisProposer
+from app.grounding.lexical import regions_named
 from app.grounding.mixture import UniformBox, map_box
+from app.grounding.parsing import parse_utterance
 from app.grounding.referent_features import SceneBoxes, attribute_scores, between_mask, related_mask
 from app.grounding.relations import Relation
-from app.grounding.sensor import LanguageSensor, subtract
+from app.grounding.sensor import LanguageSensor, broad_boxes, subtract
 from app.lsm.grounder import LSMGrounder
 from app.lsm.text_encoder import TextEncoder
 from app.scene_graph.model import SceneGraph
@@ -158,10 +159,16 @@ def test_storey_words_pick_regions_by_height() -> None:
     graph = scene(
         [], [room("up", "bedroom", 0.0, z=4.0), room("down", "bedroom", 0.0), room("k", "kitchen", 8.0)]
     )
-    assert regions_for_phrase(graph, "upstairs bedroom") == {"up"}
-    assert regions_for_phrase(graph, "downstairs") == {"down", "k"}
-    assert regions_for_phrase(graph, "kitchen") == {"k"}
-    assert regions_for_phrase(graph, "garage") is None
+    assert regions_named(graph, "upstairs bedroom") == {"up"}
+    assert regions_named(graph, "downstairs") == {"down", "k"}
+    assert regions_named(graph, "kitchen") == {"k"}
+    assert regions_named(graph, "garage") is None
+    # The broad term reads a region phrase by the same rule as the proposer: "upstairs" is the upper bedroom.
+    parse = parse_utterance("my keys are somewhere upstairs", ("bedroom", "kitchen"))
+    assert parse.region_phrase is not None and "upstairs" in parse.region_phrase
+    boxes, _ = broad_boxes(graph, parse)
+    up = next(r for r in graph.regions if r.id == "up")
+    assert len(boxes) == 1 and np.allclose(boxes[0].low, np.asarray(up.center) - 0.5 * np.asarray(up.size))
 
 
 def test_an_attribute_picks_the_object_that_carries_it(proposer: BuiltinProposer) -> None:

@@ -51,7 +51,7 @@ import numpy as np
 from app.data.relations import anchor_allowed
 from app.errors import ModelUnavailable
 from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis, Mention, Proposal, UtteranceParse
-from app.grounding.lexical import describe
+from app.grounding.lexical import describe, regions_named
 from app.grounding.mixture import UniformBox
 from app.grounding.parsing import parse_utterance
 from app.grounding.referent_features import (
@@ -122,8 +122,6 @@ N_BACKGROUND = len(BACKGROUND_FEATURES)
 #: the reading must cover every side, so it is never sharper than one and a half times "near".
 SPREADS = ("vague", "view")
 MIN_SPREADS = {"vague": 1.0, "view": 1.5}
-# Storey words of a region phrase, and the side of the map they pick.
-_STOREYS = {"upstairs": 1.0, "upper": 1.0, "downstairs": -1.0, "lower": -1.0, "ground": -1.0}
 # What a negated relation rules out around its anchor, metres: (grow xy, below, above) of the anchor's box.
 _AVOID_GROW = {
     Relation.ON: (0.05, -1.0, 0.4),
@@ -471,7 +469,7 @@ class BuiltinProposer:
         cosine = np.maximum(phrase_cosine[:, first], phrase_cosine[:, last])  # (T, N)
         levels = np.maximum(name_level[:, first], name_level[:, last])  # (T, N)
 
-        region_ids = regions_for_phrase(scene_graph, parse.region_phrase)
+        region_ids = regions_named(scene_graph, parse.region_phrase)
         in_region = None if region_ids is None else np.array([o.region_id in region_ids for o in objects])
         vocabulary = frozenset().union(*(object_attribute_words(o) for o in objects))
         region_ignored = False
@@ -788,27 +786,6 @@ def _spread(params: ProposerParams, name: str | None) -> float:
     return 1.0 if name is None else max(params.spreads.get(name, 1.0), MIN_SPREADS[name])
 
 
-def regions_for_phrase(scene_graph: SceneGraph, phrase: str | None) -> set[str] | None:
-    """Ids of the regions a region phrase names ("kitchen", "upstairs bedroom", "upstairs"); None if none.
-
-    Regions match by shared words; a storey word keeps those of them (or of all regions, if the phrase names
-    no room) whose centre lies above (below) the middle of their heights.
-    """
-    if not phrase or not scene_graph.regions:
-        return None
-    words = normalise(phrase).split()
-    storey = [_STOREYS[w] for w in words if w in _STOREYS]
-    room_words = set(lemmas(" ".join(w for w in words if w not in _STOREYS)).split())
-    pool = [r for r in scene_graph.regions if room_words & set(lemmas(r.name).split())] if room_words else []
-    if storey:
-        pool = pool or ([] if room_words else list(scene_graph.regions))
-        heights = np.array([r.center[2] for r in pool])
-        if len(pool) > 1 and np.ptp(heights) > 1.0:
-            middle = 0.5 * (heights.min() + heights.max())
-            pool = [r for r, z in zip(pool, heights, strict=True) if (z - middle) * storey[0] > 0]
-    return {r.id for r in pool} or None
-
-
 def softmax(scores: np.ndarray) -> np.ndarray:
     """exp(s_i - max s) / sum_j exp(s_j - max s)."""
     shifted = np.exp(scores - np.max(scores))
@@ -823,6 +800,5 @@ __all__ = [
     "Candidates",
     "ProposerParams",
     "object_names",
-    "regions_for_phrase",
     "softmax",
 ]

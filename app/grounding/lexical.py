@@ -14,7 +14,10 @@ from app.grounding.hypotheses import Hypothesis, Proposal, UtteranceParse
 from app.grounding.parsing import parse_utterance
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, SceneObject
-from app.vocabulary import label_tokens, normalise
+from app.vocabulary import label_tokens, lemmas, normalise
+
+# Storey words of a region phrase, and the side of the map they pick.
+_STOREYS = {"upstairs": 1.0, "upper": 1.0, "downstairs": -1.0, "lower": -1.0, "ground": -1.0}
 
 
 def match_score(anchor_phrase: str, label: str) -> int:
@@ -38,12 +41,26 @@ def matching_objects(
     return [o for s, o in scored if s == best and best > 0]
 
 
-def regions_named(scene_graph: SceneGraph, region_phrase: str | None) -> set[str] | None:
-    if not region_phrase:
+def regions_named(scene_graph: SceneGraph, phrase: str | None) -> set[str] | None:
+    """Ids of the regions a region phrase names ("kitchen", "upstairs bedroom", "upstairs"), None if none: the
+    one rule of the proposers and of the broad term.
+
+    Regions match by shared words; a storey word keeps those of them (or of all regions, if the phrase names
+    no room) whose centre lies above (below) the middle of their heights.
+    """
+    if not phrase or not scene_graph.regions:
         return None
-    wanted = set(label_tokens(region_phrase))
-    ids = {r.id for r in scene_graph.regions if set(label_tokens(r.name)) & wanted}
-    return ids or None
+    words = normalise(phrase).split()
+    storey = [_STOREYS[w] for w in words if w in _STOREYS]
+    room_words = set(lemmas(" ".join(w for w in words if w not in _STOREYS)).split())
+    pool = [r for r in scene_graph.regions if room_words & set(lemmas(r.name).split())] if room_words else []
+    if storey:
+        pool = pool or ([] if room_words else list(scene_graph.regions))
+        heights = np.array([r.center[2] for r in pool])
+        if len(pool) > 1 and np.ptp(heights) > 1.0:
+            middle = 0.5 * (heights.min() + heights.max())
+            pool = [r for r, z in zip(pool, heights, strict=True) if (z - middle) * storey[0] > 0]
+    return {r.id for r in pool} or None
 
 
 class LexicalProposer:
