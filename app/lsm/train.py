@@ -55,6 +55,7 @@ from app.lsm.features import EmbeddingCache, PackedSamples, Sample, make_sample
 from app.lsm.grounder import REGION_KEY, calibration_scale
 from app.lsm.model import LanguageSensorModel, LSMConfig, load_checkpoint, save_checkpoint
 from app.lsm.text_encoder import MINILM_SHA256, TextEncoder
+from app.training.search import golden_section
 
 log = logging.getLogger(__name__)
 MASSES = (0.5, 0.9, 0.95)
@@ -442,15 +443,7 @@ def _nll_optimal_scale(densities: Densities, targets: np.ndarray) -> float:
         peak = np.maximum(core, tail)
         return float(-np.sum(peak + np.log(np.exp(core - peak) + np.exp(tail - peak))))
 
-    low, high = -4.0, 4.0
-    ratio = 0.5 * (math.sqrt(5.0) - 1.0)
-    for _ in range(60):
-        a, b = high - ratio * (high - low), low + ratio * (high - low)
-        if total(a) < total(b):
-            high = b
-        else:
-            low = a
-    return math.exp(0.5 * (low + high))
+    return math.exp(golden_section(total, -4.0, 4.0))
 
 
 def apply_calibration(densities: Densities, groups: list[str], calibration: dict[str, Any]) -> Densities:

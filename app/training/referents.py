@@ -45,6 +45,7 @@ from app.grounding.interfaces import Grounder
 from app.grounding.mixture import map_box
 from app.grounding.relations import Relation
 from app.grounding.sensor import broad_density
+from app.training.search import golden_section
 from app.vocabulary import lemmas
 
 log = logging.getLogger("vlmap.proposer")
@@ -283,15 +284,7 @@ def fit_temperature(params: _Parameters, batch: _Batch, attribute_weight: float)
         with torch.no_grad():
             return float(-_log_density(params, batch, attribute_weight, math.exp(log_t))[0].mean())
 
-    low, high = math.log(0.25), math.log(4.0)
-    ratio = 0.5 * (math.sqrt(5.0) - 1.0)
-    for _ in range(40):
-        a, b = high - ratio * (high - low), low + ratio * (high - low)
-        if loss(a) < loss(b):
-            high = b
-        else:
-            low = a
-    return math.exp(0.5 * (low + high))
+    return math.exp(golden_section(loss, math.log(0.25), math.log(4.0), iterations=40))
 
 
 def summarise(
@@ -381,10 +374,11 @@ def standardisers(cases: Sequence[FitCase]) -> tuple[np.ndarray, ...]:
     rows = np.concatenate([c.features for c in cases])
     g = np.stack([c.utterance_features for c in cases])
     mean, scale = rows.mean(axis=0), rows.std(axis=0)
-    scale = np.where(scale > 1e-9, scale, 1.0)
+    # Below 1e-6 a feature is constant here; params.json keeps 6 decimals, so a smaller scale would load as 0.
+    scale = np.where(scale >= 1e-6, scale, 1.0)
     g_mean, g_scale = g.mean(axis=0), g.std(axis=0)
     g_mean[0], g_scale[0] = 0.0, 1.0
-    g_scale = np.where(g_scale > 1e-9, g_scale, 1.0)
+    g_scale = np.where(g_scale >= 1e-6, g_scale, 1.0)
     return mean, scale, g_mean, g_scale
 
 

@@ -1,0 +1,123 @@
+"""`vlmap fit-proposer` (`app.training.referents`): its objective is the served density; fitting lowers it.
+
+The reference is the service itself: for each case, the log-density that the fit's closed form gives the
+true position under the shipped parameters must equal `LanguageSensor.ground(...).mixture.logpdf` there.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from app.data.cases import GroundingCase, read_cases
+from app.grounding.builtin import MIN_SPREADS, SPREADS, BuiltinProposer, ProposerParams
+from app.grounding.sensor import LanguageSensor
+from app.lsm.grounder import DEFAULT_MODEL_DIR, LSMGrounder
+from app.lsm.text_encoder import TextEncoder
+from app.training import referents
+from app.training.referents import _KEYS, FitCase, fit_proposer, prepare_case
+from tests.conftest import RESOURCES
+
+CASES = RESOURCES / "proposer" / "cases.jsonl"
+
+
+@pytest.fixture(scope="module")
+def encoder() -> TextEncoder:
+    return TextEncoder()
+
+
+@pytest.fixture(scope="module")
+def grounder(encoder: TextEncoder) -> LSMGrounder:
+    return LSMGrounder.load(DEFAULT_MODEL_DIR, encoder=encoder)
+
+
+def _as_description(case: GroundingCase) -> GroundingCase:
+    """The case as a human description: the anchor unknown."""
+    return case.model_copy(update={"hypotheses": []})
+
+
+def _parameters(params: ProposerParams) -> referents._Parameters:
+    """The fit's parameter tensors that `to_params` would turn into `params`."""
+    raw = [
+        math.log(math.expm1(params.spreads[s] - MIN_SPREADS[s]))
+        if params.spreads[s] > MIN_SPREADS[s]
+        else -50.0
+        for s in SPREADS
+    ]
+    return referents._Parameters(
+        weights=torch.as_tensor(np.stack([params.weights[k] for k in _KEYS])),
+        background=torch.as_tensor(params.background),
+        spreads=torch.as_tensor(raw, dtype=torch.float64),
+    )
+
+
+def _batch(cases: list[FitCase], params: ProposerParams) -> referents._Batch:
+    return referents._batch(
+        cases, params.feature_mean, params.feature_scale, params.background_mean, params.background_scale
+    )
+
+
+def test_the_fit_objective_is_the_served_density(encoder: TextEncoder, grounder: LSMGrounder) -> None:
+    proposer = BuiltinProposer.load(encoder)
+    sensor = LanguageSensor(proposer, grounder, max_grounded=10_000)  # every reading grounded one by one
+    checked = 0
+    for case in read_cases(CASES):
+        human = _as_description(case)
+        fit_case = prepare_case(human, proposer, grounder, "human")
+        assert fit_case is not None
+        (fitted,) = referents._log_density(
+            _parameters(proposer.params),
+            _batch([fit_case], proposer.params),
+            proposer.params.attribute_weight,
+            proposer.params.temperature,
+        )[0]
+        y = np.asarray(case.target.position, dtype=np.float64)[None]
+        served = float(sensor.ground(case.scene_graph, case.utterance).mixture.logpdf(y)[0])
+        assert float(fitted) == pytest.approx(served, abs=1e-6), case.case_id
+        checked += 1
+    assert checked == 35
+
+
+def test_fitting_writes_loadable_parameters_that_lower_the_objective(
+    tmp_path: Path, encoder: TextEncoder, grounder: LSMGrounder
+) -> None:
+    human = tmp_path / "human.jsonl"
+    human.write_text(
+        "".join(_as_description(c).model_dump_json() + "\n" for c in read_cases(CASES)), encoding="utf-8"
+    )
+    report = fit_proposer(
+        [human],
+        [CASES],
+        tmp_path / "out",
+        DEFAULT_MODEL_DIR,
+        built_every=1,
+        held_out_share=0.5,
+        l2_grid=(0.03,),
+        progress=False,
+    )
+    assert report["cases"]["fit"] > 0 and report["cases"]["held_out"] > 0
+    assert report["cases_by_kind"]["fit"]["built"] > 0
+    fitted = BuiltinProposer.load(encoder, tmp_path / "out" / "params.json")
+    assert fitted.params.info["fitted_on"] and fitted.params.info["lsm"] == grounder.describe()["checksum"]
+
+    # On the fit part, the fitted parameters score the true positions higher than the untrained ones.
+    template = ProposerParams.untrained(encoder_sha256=encoder.sha256)
+    cases = [
+        fit_case
+        for kind, path in (("human", human), ("built", CASES))
+        for c in read_cases(path)
+        if not referents.held_out(c, 0.5)
+        and (fit_case := prepare_case(c, fitted, grounder, kind)) is not None
+    ]
+    batch = _batch(cases, fitted.params)
+    before = -float(referents._log_density(_parameters(template), batch, template.attribute_weight)[0].mean())
+    after = -float(
+        referents._log_density(
+            _parameters(fitted.params), batch, fitted.params.attribute_weight, fitted.params.temperature
+        )[0].mean()
+    )
+    assert after < before - 0.05
