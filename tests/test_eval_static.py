@@ -34,7 +34,7 @@ from app.grounding.geometric import FixedGrounder
 from app.grounding.hypotheses import Hypothesis, Proposal, UtteranceParse
 from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, map_box
 from app.grounding.relations import Relation
-from app.grounding.sensor import Grounding, broad_prior
+from app.grounding.sensor import Grounding, broad_term
 from app.scene_graph.model import SceneGraph
 from tests.fake_llm_server import FakeLLMServer, Reply
 
@@ -290,7 +290,9 @@ def test_referent_metrics_and_uniform_weights_nll_with_a_proposer() -> None:
     nll = [
         mixture_nll(targets[0], (0.8, 0.2)),
         mixture_nll(targets[1], (0.8, 0.2)),
-        float(-broad_prior(ROOM, ScriptedProposer.parse).logpdf(targets[2][None])[0]),  # no anchor
+        float(
+            -broad_term(1.0, ROOM, Proposal(ScriptedProposer.parse, ())).logpdf(targets[2][None])[0]
+        ),  # no anchor
     ]
     uniform = [mixture_nll(targets[0], (0.5, 0.5)), mixture_nll(targets[1], (0.5, 0.5)), nll[2]]
     assert fixed["nll"] == pytest.approx(np.mean(nll), rel=1e-6)

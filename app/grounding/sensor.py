@@ -281,8 +281,3 @@ def subtract(box: UniformBox, hole: UniformBox) -> list[UniformBox]:
             out.append(UniformBox(part_lo, hi.copy()))
         lo[axis], hi[axis] = low[axis], high[axis]
     return [b for b in out if np.all(b.high - b.low > 1e-9)]
-
-
-def broad_prior(scene_graph: SceneGraph, parse: UtteranceParse) -> GaussianMixture:
-    """The mixture when nothing can be grounded: beta = 1, beta_min U(map) + (1 - beta_min) B."""
-    return broad_term(1.0, scene_graph, Proposal(parse, ()))
