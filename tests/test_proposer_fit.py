@@ -61,12 +61,21 @@ def _batch(cases: list[FitCase], params: ProposerParams) -> referents._Batch:
     )
 
 
+def _negated(case: GroundingCase) -> GroundingCase:
+    """The case said as a negation of its true reading's anchor: "the cup is not on the table"."""
+    anchor = case.scene_graph.object(case.hypotheses[0].anchor_ids[0])
+    return case.model_copy(update={"utterance": f"the {case.target.label} is not near the {anchor.label}"})
+
+
 def test_the_fit_objective_is_the_served_density(encoder: TextEncoder, grounder: LSMGrounder) -> None:
     proposer = BuiltinProposer.load(encoder)
     sensor = LanguageSensor(proposer, grounder, max_grounded=10_000)  # every reading grounded one by one
-    checked = 0
-    for case in read_cases(CASES):
+    checked = negations = 0
+    for case in [*read_cases(CASES), *(_negated(c) for c in read_cases(CASES))]:
         human = _as_description(case)
+        negations += bool(
+            proposer.candidates(case.scene_graph, proposer.parse(case.scene_graph, case.utterance)).avoid
+        )
         fit_case = prepare_case(human, proposer, grounder, "human")
         assert fit_case is not None
         (fitted,) = referents._log_density(
@@ -79,7 +88,7 @@ def test_the_fit_objective_is_the_served_density(encoder: TextEncoder, grounder:
         served = float(sensor.ground(case.scene_graph, case.utterance).mixture.logpdf(y)[0])
         assert float(fitted) == pytest.approx(served, abs=1e-6), case.case_id
         checked += 1
-    assert checked == 35
+    assert checked == 70 and negations >= 30  # the negated readings' region term is the carved broad term
 
 
 def test_fitting_writes_loadable_parameters_that_lower_the_objective(

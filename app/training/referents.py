@@ -88,12 +88,19 @@ def prepare_case(
         for h in range(len(found.keys))
     ]
     y = np.asarray(case.target.position, dtype=np.float64)
+    log_broad = float(broad_density(case.scene_graph, parse, found.avoid).logpdf(y[None])[0])
+    # Under a negation the region reading is served as the broad density B itself (`BuiltinProposer.propose`
+    # moves its weight into beta, which is the same mixture): its row scores log B(y).
+    as_broad = [bool(found.avoid) and not found.anchors[h] for h in range(len(hypotheses))]
     density = np.empty((len(hypotheses), 6))
-    for h, d in enumerate(grounder.ground(case.scene_graph, case.utterance, hypotheses)):
+    grounded = [h for h in range(len(hypotheses)) if not as_broad[h]]
+    densities = grounder.ground(case.scene_graph, case.utterance, [hypotheses[h] for h in grounded])
+    for h, d in zip(grounded, densities, strict=True):
         density[h] = density_terms(d.weights, d.means, d.covariances, y)
+    for h in np.flatnonzero(as_broad):
+        density[h] = fixed_density_terms(log_broad)
     box = map_box(case.scene_graph)
     inside = bool(box.contains(y[None])[0])
-    log_broad = float(broad_density(case.scene_graph, parse, found.avoid).logpdf(y[None])[0])
     correct = None
     if case.hypotheses:
         truth = frozenset(case.hypotheses[0].anchor_ids)
@@ -130,6 +137,13 @@ def density_terms(
         a = float(weights[1] / weights[:2].sum())
     with np.errstate(divide="ignore"):
         return np.array([math.log1p(-a), math.log(a) if a > 0 else -math.inf, *terms[0], *terms[1]])
+
+
+def fixed_density_terms(log_density: float) -> np.ndarray:
+    """The `density_terms` of a row without a spread (c = 1) whose density at the truth is `log_density`: one
+    component (a = 0) with NEES 0 and log|Sigma| = -2 log_density - 3 log 2 pi, so the core term equals it."""
+    log_det = -2.0 * log_density - 3.0 * _LOG_2PI
+    return np.array([0.0, -math.inf, log_det, 0.0, log_det, 0.0])
 
 
 # --- the objective ---
