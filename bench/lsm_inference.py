@@ -50,7 +50,8 @@ def main() -> None:
     ]
     for i in range(20):
         grounder.ground(scene, f"warm-up {i}: the bag is on the table", hypotheses)
-    new_names = sorted(n for n in object_nouns() if " " not in n)[:200]  # a target name new to each pass
+    # A target name new to each pass (not the warm-up's nor the cached pass's).
+    new_names = sorted(n for n in object_nouns() if " " not in n and n not in ("bag", "backpack"))[:200]
     timings: dict[str, list[float]] = {"hypothesis texts new to the encoder": [], "texts cached": []}
     for name in new_names:
         for label, text in (
