@@ -32,7 +32,7 @@ import httpx
 import msgpack
 import numpy as np
 
-from app.api.launcher import start_service, wait_ready
+from app.sim.service import start_service, wait_ready
 
 RESOURCES = Path(__file__).resolve().parent.parent / "tests" / "resources"
 #: A service on the model-free parts, no rate limit, and grids small enough that a session's layers (state,

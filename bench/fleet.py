@@ -39,9 +39,10 @@ from typing import Any
 import httpx
 import numpy as np
 
-from app.api.launcher import RedisServer, start_service, wait_ready
 from app.api.wire import encode_msgpack_batch
 from app.client import VLMapClient
+from app.sim.service import start_service, wait_ready
+from tests.harness import RedisServer
 
 TP, FP = 0.51, 0.5
 #: Robots send label ids, as a segmenter does. The target class is absent from the scene graph (as the service

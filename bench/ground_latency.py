@@ -19,7 +19,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from app.api.launcher import running_service
+from app.sim.service import running_service
 
 SCENES = Path(__file__).resolve().parent.parent / "tests" / "resources" / "scenes"
 UTTERANCES = [

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from app.api.launcher import start_service, wait_ready
 from app.client import VLMapClient
+from app.sim.service import start_service, wait_ready
 
 SCENE = (
     Path(__file__).resolve().parent.parent / "tests" / "resources" / "scenes" / "scannet_scene0590_00.json"

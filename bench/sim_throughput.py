@@ -18,10 +18,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from app.api.launcher import running_service
 from app.client import VLMapClient
 from app.settings import Settings
 from app.sim.runner import SimConfig, load_episodes, run_simulation
+from app.sim.service import running_service
 
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_SCENES = REPO / "data" / "cases" / "val_unseen.jsonl"

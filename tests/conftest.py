@@ -14,10 +14,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.api.app import create_app
-from app.api.launcher import RedisServer
 from app.lsm.features import rotation_z
 from app.scene_graph.model import SceneGraph
 from app.settings import Settings
+from tests.harness import RedisServer
 
 RESOURCES = Path(__file__).parent / "resources"
 

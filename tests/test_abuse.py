@@ -11,7 +11,7 @@ from collections.abc import Iterator
 import httpx
 import pytest
 
-from app.api.launcher import start_service, wait_ready
+from app.sim.service import start_service, wait_ready
 from bench import abuse
 
 MIB = 2**20

@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.api.launcher import start_service, wait_ready
 from app.client import VLMapClient
+from app.sim.service import start_service, wait_ready
 from tests.conftest import load_resource_json
 from tests.test_sessions_processes import MODEL_FREE, create, make_batches, retried_stream, sequential_sum
 from tests.test_stores import make_session, redis_store

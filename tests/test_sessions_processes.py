@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.api.launcher import running_service, start_service, wait_ready
 from app.belief.fusion import vision_increments
 from app.client import VLMapClient
+from app.sim.service import running_service, start_service, wait_ready
 from tests.conftest import load_resource_json
 
 TP, FP = 0.9, 0.05

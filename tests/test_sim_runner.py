@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.api.launcher import running_service
 from app.belief.fusion import VIS_LOG_MAX, VIS_LOG_MIN
 from app.cli import main as vlmap_main
 from app.client import VLMapClient
@@ -44,6 +43,7 @@ from app.sim.runner import (
     run_method,
     run_simulation,
 )
+from app.sim.service import running_service
 from app.vocabulary import class_key
 from tests.fake_llm_server import FakeLLMServer, Reply
 

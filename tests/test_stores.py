@@ -24,15 +24,16 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.api.launcher import RedisServer, free_port
 from app.belief.fusion import LayerLimits
 from app.belief.session import SensorModel, Session, new_session
 from app.belief.summary import summarize
 from app.errors import Conflict, InvalidInput, NotFound, StoreUnavailable
 from app.grounding.mixture import Gaussian, GaussianMixture
 from app.scene_graph.model import SceneGraph
+from app.sim.service import free_port
 from app.stores import MemorySessionStore, SessionStore, open_store
 from app.stores.memory import _HEADER
+from tests.harness import RedisServer
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE_DICT = {

@@ -74,7 +74,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from app.api.launcher import running_service
     from app.client import VLMapClient
     from app.errors import InvalidInput
     from app.sim.camera import CameraConfig
@@ -88,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
         needs_utterance,
         run_simulation,
     )
+    from app.sim.service import running_service
 
     try:
         methods = check_methods([m.strip() for m in args.methods.split(",") if m.strip()])

@@ -1,20 +1,18 @@
-"""Start `vlmap serve` (and a redis-server for it) as subprocesses on loopback ports.
+"""Start `vlmap serve` as a subprocess on a loopback port: what `vlmap sim` runs when given no `--url`.
 
-For tests, benchmarks and the simulator: real processes, real sockets, nothing outside 127.0.0.1.
+Tests and benchmarks start their services with these too (their redis-server is `tests.harness`): real
+processes, real sockets, nothing outside 127.0.0.1.
 """
 
 from __future__ import annotations
 
 import os
-import shutil
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from pathlib import Path
 
 import httpx
 
@@ -68,55 +66,3 @@ def running_service(env: dict[str, str] | None = None, timeout_s: float = 60.0) 
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
-
-
-class RedisServer:
-    """`redis-server` in a temporary directory on 127.0.0.1; `restart()` keeps the port (and AOF data)."""
-
-    def __init__(self, binary: str, appendonly: bool = False) -> None:
-        self.binary = binary
-        self.appendonly = appendonly
-        self.port = free_port()
-        self.workdir = Path(tempfile.mkdtemp(prefix="vlmap-redis-"))
-        self.proc: subprocess.Popen | None = None
-
-    @property
-    def url(self) -> str:
-        return f"redis://127.0.0.1:{self.port}/0"
-
-    def start(self, timeout_s: float = 10.0) -> None:
-        import redis
-
-        args = [self.binary, "--port", str(self.port), "--bind", "127.0.0.1", "--save", ""]
-        args += ["--appendonly", "yes" if self.appendonly else "no", "--appendfsync", "always"]
-        self.proc = subprocess.Popen(
-            [*args, "--dir", str(self.workdir)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-        )
-        client = redis.Redis(port=self.port)
-        deadline = time.monotonic() + timeout_s
-        try:
-            while True:
-                try:
-                    client.ping()
-                    return
-                except redis.ConnectionError:
-                    if self.proc.poll() is not None or time.monotonic() > deadline:
-                        msg = f"redis-server did not start on port {self.port}"
-                        raise RuntimeError(msg) from None
-                    time.sleep(0.05)
-        finally:
-            client.close()
-
-    def stop(self) -> None:
-        if self.proc is not None:
-            self.proc.terminate()
-            self.proc.wait(timeout=10)
-            self.proc = None
-
-    def restart(self) -> None:
-        self.stop()
-        self.start()
-
-    def close(self) -> None:
-        self.stop()
-        shutil.rmtree(self.workdir, ignore_errors=True)
