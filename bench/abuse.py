@@ -6,12 +6,12 @@ asserted (tests/test_abuse.py asserts on its own run).
 
 Classes: label bombs (H1), long lists of bad items (H2), huge overlapping places (H3), label-map id bombs
 (H4), huge finite coordinates, deep JSON, non-ASCII digits in label ids, hostile msgpack shapes, bodies
-that are not UTF-8 (each a former 500), and the low findings (JSON labels that are not ids, unknown class
-names, uint8 labels, trailing slashes with a forged Host, integer object ids, Spark-DSG binaries, whole-grid
-downloads at once). Every rejected request aimed at the watched session is followed by a check that its
-belief (layers and version) is unchanged. Printed: answers per class and status, 5xx, beliefs changed by a
-reject, the service's resident memory (before, after, peak) and the largest growth one request caused, and
-/healthz latency over the run and while the heaviest requests run.
+that are not UTF-8 (each a 500 if unguarded), and the low findings (JSON labels that are not ids, unknown
+class names, uint8 labels, trailing slashes with a forged Host, integer object ids, Spark-DSG binaries,
+whole-grid downloads at once). Every rejected request aimed at the watched session is followed by a check
+that its belief (layers and version) is unchanged. Printed: answers per class and status, 5xx, beliefs
+changed by a reject, the service's resident memory (before, after, peak) and the largest growth one request
+caused, and /healthz latency over the run and while the heaviest requests run.
 """
 
 from __future__ import annotations
@@ -85,7 +85,7 @@ def _session(rng: random.Random, graph: Any, **extra: Any) -> dict[str, Any]:
 
 
 def label_bombs(rng: random.Random) -> Iterator[Hostile]:
-    """H1: one long class name among many short ones (the old decoder made a fixed-width array of them)."""
+    """H1: one long class name among many short ones (a fixed-width array of them is n x the longest)."""
     while True:
         n = rng.randrange(2, 5000)
         labels = [rng.choice(["floor", "backpack", "wall", "x"]) for _ in range(n)]
@@ -135,7 +135,7 @@ def big_places(rng: random.Random) -> Iterator[Hostile]:
 
 
 def label_id_bombs(rng: random.Random) -> Iterator[Hostile]:
-    """H4: huge label ids (a dense table of max id + 1 entries had been allocated per session)."""
+    """H4: huge label ids (a dense lookup table would take max id + 1 entries per session)."""
     graph = scene()
     while True:
         ids = {
@@ -189,7 +189,7 @@ _JSON_PATHS = [
 
 
 def deep_json(rng: random.Random) -> Iterator[Hostile]:
-    """Deeply nested JSON (a RecursionError had been a 500)."""
+    """Deeply nested JSON (a recursive decoder's RecursionError would be a 500)."""
     while True:
         depth = rng.randrange(300, 200_000)
         opener, closer = rng.choice([(b"[", b"]"), (b'{"a":', b"}")])

@@ -165,7 +165,7 @@ class MiniLMForward:
     Post-norm BERT layers: x <- LN(x + Attn(x)), x <- LN(x + W2 gelu(W1 x)), after the embedding sum
     LN(word + position + token type 0). Q, K and V are one fused matrix. Projections are computed
     feature-major, y^T = W x^T + b with W as stored (N, K) and x^T contiguous (K, B*T): with ten tokens
-    that GEMM shape runs ~1.4x faster on one core than x W^T (measured with MKL here).
+    that GEMM shape runs ~1.4x faster on one core than x W^T (with MKL).
     """
 
     def __init__(self, state: dict[str, Any], n_layers: int, n_heads: int, eps: float) -> None:
