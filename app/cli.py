@@ -16,7 +16,7 @@ _COMMAND_MODULES = {
     "openapi": "app.api.cli",
     "keys": "app.api.cli",
     "data": "app.data.cli",
-    "train": "app.lsm.cli",
+    "train": "app.training.cli",
     "fit-proposer": "app.training.referents",
     "sim": "app.sim.cli",
     "eval": "app.evaluation.cli",

@@ -43,8 +43,8 @@ from app.lsm.model import (
     save_checkpoint,
 )
 from app.lsm.text_encoder import MINILM_SHA256, TextEncoder, file_sha256
-from app.lsm.train import Densities, apply_calibration, fit_calibration, predict
 from app.scene_graph.model import SceneGraph
+from app.training.lsm import Densities, apply_calibration, fit_calibration, predict
 from tests.conftest import moved_scene
 
 CASES = Path(__file__).parent / "resources" / "lsm" / "cases.jsonl"
@@ -580,7 +580,7 @@ def test_the_mean_of_on_a_plain_top_rests_above_it_and_over_its_footprint(packed
 
 def test_on_labels_rest_on_plain_tops_but_not_inside_seats(cases):
     from app.data.cases import CaseHypothesis
-    from app.lsm.train import resting_position
+    from app.training.lsm import resting_position
 
     case = next(c for c in cases if c.hypotheses[0].relation is Relation.ON)
     anchor = case.scene_graph.object(case.hypotheses[0].anchor_ids[0])

@@ -1,1 +1,2 @@
-"""Fitting the models the service ships: the proposer (`referents`); see also `app.lsm.train`."""
+"""Fitting the models the service ships: the LSM (`lsm`, `vlmap train`) and the proposer (`referents`,
+`vlmap fit-proposer`). The runtime rooms (grounding, lsm, api) never import this one."""

@@ -1,4 +1,4 @@
-"""`vlmap train --config FILE --out DIR`: train, calibrate and evaluate an LSM (see app.lsm.train)."""
+"""`vlmap train --config FILE --out DIR`: train, calibrate and evaluate an LSM (see app.training.lsm)."""
 
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from app.lsm.train import TrainConfig, evaluate_checkpoint, recalibrate, train, write_report
+    from app.training.lsm import TrainConfig, evaluate_checkpoint, recalibrate, train, write_report
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = TrainConfig.from_yaml(args.config)
