@@ -97,7 +97,7 @@ def prepare_case(
     densities = grounder.ground(case.scene_graph, case.utterance, [hypotheses[h] for h in grounded])
     for h, d in zip(grounded, densities, strict=True):
         density[h] = density_terms(d.weights, d.means, d.covariances, y)
-    for h in np.flatnonzero(as_broad):
+    for h in np.flatnonzero(as_broad).tolist():
         density[h] = fixed_density_terms(log_broad)
     box = map_box(case.scene_graph)
     inside = bool(box.contains(y[None])[0])
