@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 
 from app.api.app import create_app
 from app.api.routes.ground import to_response
-from app.api.services import Sensors
+from app.api.bootstrap import Sensors
 from app.grounding.geometric import GeometricGrounder
 from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis
 from app.grounding.lexical import LexicalProposer

@@ -316,7 +316,7 @@ def test_idle_sessions_expire_and_are_purged(two_rooms: dict, settings: Any) -> 
         assert client.get(f"/v1/sessions/{sid}").status_code == 404
         assert client.get("/v1/sessions").json()["sessions"] == []
         store = client.app.state.services.store  # type: ignore[attr-defined]
-        assert store.purge_expired() == 0  # the background task already freed it
+        assert client.portal.call(store.purge_expired) == 0  # type: ignore[union-attr]  # already freed
 
 
 def test_sensor_rate_batches_may_skip_the_summary(client: TestClient, two_rooms: dict) -> None:
@@ -330,48 +330,43 @@ def test_sensor_rate_batches_may_skip_the_summary(client: TestClient, two_rooms:
 def test_a_watched_session_is_summarised_in_the_background_before_the_next_poll(
     client: TestClient, two_rooms: dict
 ) -> None:
+    import time
+
+    from app.api.schemas import BeliefOut
+
     sid = _create(client, two_rooms, target_label="backpack")["id"]
-    services = client.app.state.services  # type: ignore[attr-defined]
+    summaries = client.app.state.services.sessions.summaries  # type: ignore[attr-defined]
     batch = {"voxels": [[1, 1, 1]], "labels": ["chair"]}
     client.post(f"/v1/sessions/{sid}/observations", params={"summary": "false"}, json=batch)
-    assert services.summaries.get((sid, 1, 5)) is None  # nobody reads this belief: nothing summarised
+    time.sleep(0.2)  # a job, had one started, would have finished
+    assert summaries.get(sid, 1, 5) is None  # nobody reads this belief: nothing summarised
     assert client.get(f"/v1/sessions/{sid}/belief").json()["version"] == 1  # a dashboard starts polling
     for version in (2, 3):
         client.post(f"/v1/sessions/{sid}/observations", params={"summary": "false"}, json=batch)
-        services.summaries.close()  # waits for the background job (a later refresh starts a new pool)
-        ready = services.summaries.get((sid, version, 5))
+        deadline = time.monotonic() + 10.0
+        while (ready := summaries.get(sid, version, 5)) is None and time.monotonic() < deadline:
+            time.sleep(0.01)  # the background job runs on the app's event loop
         assert ready is not None and ready.version == version
         polled = client.get(f"/v1/sessions/{sid}/belief").json()
-        assert polled == ready.model_dump(mode="json")
+        assert polled == BeliefOut.of(ready).model_dump(mode="json")
 
 
-def test_summary_refresh_runs_once_more_for_updates_during_a_job_and_stops_when_unwatched() -> None:
-    import threading
-
-    from app.api.services import SummaryCache
+def test_summary_jobs_run_once_more_for_updates_during_a_job_and_stop_when_unwatched() -> None:
+    from app.sessions.summaries import SummaryCache
 
     now = [0.0]
     cache = SummaryCache(watch_s=10.0, clock=lambda: now[0])
-    started, release = threading.Event(), threading.Event()
-    calls: list[int] = []
-
-    def slow(top_k: int) -> None:
-        calls.append(top_k)
-        started.set()
-        release.wait(5)
-
-    assert not cache.refresh("s", slow)  # never read
+    assert cache.start_job("s") is None  # never read
     cache.watch("s", 5)
     cache.watch("s", 7)
-    assert cache.refresh("s", slow)
-    assert started.wait(5)
-    assert cache.refresh("s", slow) and cache.refresh("s", slow)  # two updates during the job: one more round
-    release.set()
-    cache.close()
-    assert calls == [5, 7, 5, 7]
+    assert cache.start_job("s") == [5, 7]
+    assert cache.start_job("s") is None and cache.start_job("s") is None  # two updates during the job
+    assert cache.end_job("s")  # ...make it run once more
+    assert not cache.end_job("s")  # and then it is over
+    assert cache.start_job("s") == [5, 7]
+    assert not cache.end_job("s")
     now[0] = 11.0  # no read for longer than watch_s
-    assert not cache.refresh("s", slow)
-    assert calls == [5, 7, 5, 7]
+    assert cache.start_job("s") is None
 
 
 def _say(client: TestClient, session_id: str, utterance: str) -> dict[str, Any]:

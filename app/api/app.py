@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import gc
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -13,6 +12,7 @@ import anyio.to_thread
 from fastapi import Depends, FastAPI
 
 from app import __version__
+from app.api.bootstrap import Sensors, build_sensors, build_store, freeze_startup_objects
 from app.api.content_types import FormAsJsonMiddleware
 from app.api.deps import reject_unknown_query
 from app.api.errors import install_error_handlers
@@ -27,7 +27,7 @@ from app.api.schemas import (
     SessionCreate,
     UtteranceIn,
 )
-from app.api.services import Sensors, Services, build_sensors
+from app.api.services import Services
 from app.api.workers import WorkerProcesses
 from app.errors import VLMapError
 from app.settings import Settings, get_settings
@@ -67,14 +67,6 @@ def openapi_with_raw_bodies(app: FastAPI) -> dict[str, Any]:
     return app.openapi_schema
 
 
-def freeze_startup_objects() -> None:
-    """Exempt what start-up built (torch, transformers, the models: about 400k objects) from the cyclic
-    garbage collector: a full collection scanning them took 240 ms, a pause for every request in flight,
-    and requests' own garbage triggers one every few seconds under load."""
-    gc.collect()
-    gc.freeze()
-
-
 async def purge_expired_sessions(services: Services) -> None:
     """Free idle sessions' memory now and then (they read as deleted from the moment they expire)."""
     interval = min(60.0, services.settings.session_ttl_s / 2)
@@ -82,7 +74,7 @@ async def purge_expired_sessions(services: Services) -> None:
         await anyio.sleep(interval)
         if services.store is not None:
             try:
-                purged = await services.run(services.store.purge_expired)
+                purged = await services.store.purge_expired()
             except VLMapError as exc:  # a store outage: the next round tries again
                 log.warning("session purge failed", extra={"error": str(exc)})
                 continue
@@ -101,7 +93,7 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         owns_store = services.store is None
         if owns_store:
-            services.store = await anyio.to_thread.run_sync(services.open_store)
+            services.use_store(await anyio.to_thread.run_sync(build_store, settings))
         if services.sensors is None:
             services.sensors = await anyio.to_thread.run_sync(build_sensors, settings, services.metrics)
             if settings.worker_processes > 0:  # workers load the same models (injected sensors stay here)
@@ -116,13 +108,14 @@ def create_app(
                 yield
             finally:
                 tasks.cancel_scope.cancel()
-                await anyio.to_thread.run_sync(services.summaries.close)  # before the store it reads
+                if services.sessions is not None:
+                    await services.sessions.close()  # before the store it reads
                 if services.worker_processes is not None:
                     await anyio.to_thread.run_sync(services.worker_processes.close)
                     services.worker_processes = None
                 if owns_store and services.store is not None:
                     services.store.close()
-                    services.store = None
+                    services.store = services.sessions = None
 
     app = FastAPI(
         title="VL-Map",

@@ -15,10 +15,11 @@ from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from app.api.auth import OPEN_ACCESS, Principal
-from app.api.services import Sensors, Services, SummaryCache
+from app.api.bootstrap import Sensors
+from app.api.services import Services
 from app.errors import InvalidInput, ModelUnavailable, Unauthenticated
+from app.sessions import SessionService
 from app.settings import Settings
-from app.stores.base import SessionStore
 
 _bearer = HTTPBearer(
     auto_error=False,
@@ -49,12 +50,12 @@ async def get_sensors(request: Request) -> Sensors:
     return sensors
 
 
-async def get_store(request: Request) -> SessionStore:
-    store = _services(request).store
-    if store is None:
+async def get_sessions(request: Request) -> SessionService:
+    sessions = _services(request).sessions
+    if sessions is None:
         msg = "the session store is not open"
         raise ModelUnavailable(msg)
-    return store
+    return sessions
 
 
 def _query_names(dependant: Dependant) -> frozenset[str]:
@@ -79,10 +80,6 @@ async def reject_unknown_query(request: Request) -> None:
             raise InvalidInput(msg, field=name)
 
 
-async def get_summaries(request: Request) -> SummaryCache:
-    return _services(request).summaries
-
-
 async def get_principal(
     request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ) -> Principal:
@@ -105,5 +102,4 @@ ServicesDep = Annotated[Services, Depends(get_services)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 SensorsDep = Annotated[Sensors, Depends(get_sensors)]
 PrincipalDep = Annotated[Principal, Depends(get_principal)]
-StoreDep = Annotated[SessionStore, Depends(get_store)]
-SummariesDep = Annotated[SummaryCache, Depends(get_summaries)]
+SessionsDep = Annotated[SessionService, Depends(get_sessions)]

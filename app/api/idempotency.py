@@ -18,15 +18,24 @@ a bare token are the same key.
 from __future__ import annotations
 
 import hashlib
-import uuid
 from typing import Annotated
 
-from fastapi import Header, Request, Response
+from fastapi import Depends, Header, Request
 
-from app.errors import IdempotencyKeyReused, InvalidInput
-from app.stores.base import Idempotency, IdempotencyRecord
+from app.errors import InvalidInput
+from app.stores.base import Idempotency
 
 REPLAYED_HEADER = "Idempotent-Replayed"
+
+
+def replayable(status: int = 200) -> dict[int | str, dict[str, object]]:
+    """The OpenAPI success response of a keyed route, with its replay header."""
+    header = {
+        "description": "true when this answers a request repeated with its Idempotency-Key.",
+        "schema": {"type": "string", "enum": ["true"]},
+    }
+    return {status: {"description": "Successful Response", "headers": {REPLAYED_HEADER: header}}}
+
 
 IdempotencyKeyHeader = Annotated[
     str | None,
@@ -56,22 +65,14 @@ def idempotency_of(request: Request, key: str | None, body: bytes, answer: bytes
     return Idempotency(text, digest.hexdigest()[:32], answer)
 
 
+async def request_idempotency(request: Request, key: IdempotencyKeyHeader = None) -> Idempotency | None:
+    """The request's `Idempotency` from its Idempotency-Key header and body (None without a key)."""
+    return None if key is None else idempotency_of(request, key, await request.body())
+
+
+#: A state-changing route's Idempotency-Key, as the dependency that reads it.
+IdempotencyDep = Annotated[Idempotency | None, Depends(request_idempotency)]
+
+
 def with_answer(idempotency: Idempotency | None, answer: bytes) -> Idempotency | None:
     return None if idempotency is None else Idempotency(idempotency.key, idempotency.fingerprint, answer)
-
-
-def replay(record: object, idempotency: Idempotency | None, response: Response) -> IdempotencyRecord:
-    """The record of the request that first used this key, once it is the same request (else a 422); marks
-    the answer as a replay."""
-    assert isinstance(record, IdempotencyRecord) and idempotency is not None  # only keyed changes replay
-    if record.fingerprint != idempotency.fingerprint:
-        msg = "this Idempotency-Key was used with another request; use a new key for a new request"
-        raise IdempotencyKeyReused(msg, field="Idempotency-Key")
-    response.headers[REPLAYED_HEADER] = "true"
-    return record
-
-
-def session_id_for(robot_id: str, idempotency: Idempotency) -> str:
-    """The id a keyed creation gives its session: the same for a retry, so that the store finds it."""
-    digest = hashlib.sha256(f"{robot_id}\0{idempotency.key}".encode()).digest()
-    return uuid.UUID(bytes=digest[:16]).hex

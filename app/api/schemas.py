@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+import json
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Strict, Tag
+from fastapi import Query
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Strict, Tag, TypeAdapter
 from pydantic.config import JsonDict
 
+from app.belief.session import SensorModel
 from app.grounding.relations import Relation
 from app.scene_graph.model import Id, SceneGraph, Vec3
+from app.sessions.service import GridRequest, NewSession
+
+if TYPE_CHECKING:
+    from app.belief.grid import VoxelGrid
+    from app.belief.session import SessionInfo, UpdateResult
+    from app.sessions.summaries import Belief
 
 #: Ceilings of the request lists that the service's configurable limits (`app.settings`) lie below: the
 #: validator refuses a longer list before reading its items (`app.api.bodies`).
@@ -269,12 +278,33 @@ class SessionCreate(BaseModel):
         description='Integer label id (as a string key) -> class name, e.g. {"7": "backpack"}.',
     )
 
+    def request(self, scene_graph: SceneGraph) -> NewSession:
+        """The use-case's request, with the body's scene graph resolved to `scene_graph`."""
+        grid, sensor = self.grid or GridSpec(), self.sensor_model
+        return NewSession(
+            robot_id=self.robot_id,
+            scene_graph=scene_graph,
+            grid=GridRequest(grid.voxel_size, grid.margin, grid.min_corner, grid.max_corner),
+            target_label=self.target_label or "",
+            label_map=self.label_map,
+            sensor_model=SensorModel(sensor.tp, sensor.fp) if sensor else None,
+        )
+
 
 class GridOut(BaseModel):
     min_corner: list[float]
     shape: list[int]
     voxel_size: float
     n_voxels: int
+
+    @classmethod
+    def of(cls, grid: VoxelGrid) -> GridOut:
+        return cls(
+            min_corner=list(grid.origin),
+            shape=list(grid.shape),
+            voxel_size=grid.voxel_size,
+            n_voxels=grid.n_voxels,
+        )
 
 
 class SessionOut(BaseModel):
@@ -285,6 +315,18 @@ class SessionOut(BaseModel):
     created_at: float
     updated_at: float
     grid: GridOut | None = None
+
+    @classmethod
+    def of(cls, info: SessionInfo) -> SessionOut:
+        return cls(
+            id=info.id,
+            robot_id=info.robot_id,
+            target_label=info.target_label or None,
+            version=info.version,
+            created_at=info.created_at,
+            updated_at=info.updated_at,
+            grid=GridOut.of(info.grid),
+        )
 
 
 class SessionList(BaseModel):
@@ -326,6 +368,15 @@ class BeliefOut(BaseModel):
     target_label: str | None
     summary: PosteriorSummaryOut
 
+    @classmethod
+    def of(cls, belief: Belief) -> BeliefOut:
+        return cls(
+            session_id=belief.session_id,
+            version=belief.version,
+            target_label=belief.target_label or None,
+            summary=PosteriorSummaryOut.model_validate(belief.summary.to_dict()),
+        )
+
 
 class UtteranceIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -361,6 +412,18 @@ class UtteranceOut(BaseModel):
             "broad prior",
         ],
     )
+
+    @staticmethod
+    def answer(grounding: GroundResponse, reason: str | None) -> bytes:
+        """What the answer says besides the belief, remembered with an Idempotency-Key so that a retry
+        repeats it."""
+        return json.dumps({"grounding": grounding.model_dump(mode="json"), "reason": reason}).encode()
+
+    @staticmethod
+    def first_answer(answer: bytes) -> tuple[GroundResponse, str | None]:
+        """Inverse of `answer`."""
+        first = json.loads(answer)
+        return GroundResponse.model_validate(first["grounding"]), first["reason"]
 
 
 # Strict: a JSON true or 1.0 is not the integer 1.
@@ -416,3 +479,37 @@ class ObservationOut(BaseModel):
     belief: BeliefOut | None = Field(
         description="The posterior summary after this batch (null with summary=false)."
     )
+
+    @classmethod
+    def of(cls, result: UpdateResult, stamp: float | None, belief: Belief | None) -> ObservationOut:
+        return cls(
+            version=result.version,
+            stamp=stamp,
+            voxels_updated=result.voxels_updated,
+            voxels_outside=result.voxels_outside,
+            belief=BeliefOut.of(belief) if belief is not None else None,
+        )
+
+
+# Query parameters of the session routes.
+RobotIdQuery = Annotated[
+    str | None,
+    Query(min_length=1, max_length=128, pattern=ROBOT_ID_PATTERN, description="Only this robot's sessions."),
+]
+WithSummaryQuery = Annotated[
+    bool,
+    Query(description="Return the posterior summary (false: just the version, for sensor-rate streams)."),
+]
+BeliefFormatQuery = Annotated[
+    str, Query(pattern="^(summary|grid)$", description="summary (JSON) or grid (msgpack posterior).")
+]
+LayersQuery = Annotated[bool, Query(description="With format=grid: also the language and vision layers.")]
+TopKQuery = Annotated[int, Query(ge=1, le=100, description="Top voxels in the summary.")]
+
+
+def scene_graph_payload_schema() -> dict[str, Any]:
+    """The OpenAPI schema of a bare `SceneGraphPayload` body (PUT .../scene-graph), as FastAPI wrote it when
+    it read that body itself (the definitions it refers to are the components')."""
+    schema = TypeAdapter(SceneGraphPayload).json_schema(ref_template="#/components/schemas/{model}")
+    schema.pop("$defs", None)
+    return {**schema, "title": "Scene Graph"}

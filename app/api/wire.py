@@ -18,17 +18,25 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from functools import partial
 from typing import Any
 
 import msgpack
 import numpy as np
+from fastapi import Request
+from fastapi.responses import StreamingResponse
+from pydantic import TypeAdapter
 
-from app.api.schemas import MAX_LABEL_CHARS
-from app.belief.session import LabelNames
-from app.errors import InvalidInput, LimitExceeded
+from app.api.bodies import json_bytes, media_type, validate_json
+from app.api.schemas import MAX_LABEL_CHARS, ObservationBatchJson
+from app.belief.session import LabelNames, Session
+from app.errors import InvalidInput, LimitExceeded, UnsupportedMediaType
+from app.sessions.batch import ObservationBatch
 from app.stores.base import pack_array  # the one {dtype, shape, data} codec, the stores' too
+
+#: Runs a function on a worker thread: `run(func, *args)`.
+Runner = Callable[..., Awaitable[Any]]
 
 MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vnd.msgpack")
 
@@ -38,49 +46,6 @@ _ALLOWED_DTYPES = {
     "labels": ("<u4", "<i4", "<u2", "<u1", "|u1"),  # numpy spells uint8 "|u1" (no byte order)
     "p_target": ("<f4", "<f8"),
 }
-
-
-@dataclass(frozen=True)
-class ObservationBatch:
-    """One batch, decoded: exactly one of `voxels`/`points`, exactly one of `labels`/`p_target`."""
-
-    stamp: float | None
-    voxels: np.ndarray | None  # (N, 3) int64
-    points: np.ndarray | None  # (N, 3) float64
-    labels: np.ndarray | LabelNames | None  # (N,) int64 ids, or class names
-    p_target: np.ndarray | None  # (N,) float64 in [0, 1]
-    tp: float | None = None
-    fp: float | None = None
-
-    def __post_init__(self) -> None:
-        if (self.voxels is None) == (self.points is None):
-            msg = "give exactly one of voxels or points"
-            raise InvalidInput(msg, field="voxels")
-        if (self.labels is None) == (self.p_target is None):
-            msg = "give exactly one of labels or p_target"
-            raise InvalidInput(msg, field="labels")
-        where = self.voxels if self.voxels is not None else self.points
-        n = len(where)  # type: ignore[arg-type]
-        values_field = "labels" if self.labels is not None else "p_target"
-        values = self.labels if self.labels is not None else self.p_target
-        if len(values) != n:  # type: ignore[arg-type]
-            msg = f"{values_field} has {len(values)} entries for {n} voxels"  # type: ignore[arg-type]
-            raise InvalidInput(msg, field=values_field)
-        if self.points is not None and not np.all(np.isfinite(self.points)):
-            msg = "points must be finite numbers"
-            raise InvalidInput(msg, field="points")
-        if self.p_target is not None and not (
-            np.all(np.isfinite(self.p_target)) and np.all((self.p_target >= 0) & (self.p_target <= 1))
-        ):
-            msg = "p_target must hold probabilities in [0, 1]"
-            raise InvalidInput(msg, field="p_target")
-        for name, rate in (("tp", self.tp), ("fp", self.fp)):
-            if rate is not None and not (0.0 < rate < 1.0):
-                msg = f"{name} must lie strictly between 0 and 1"
-                raise InvalidInput(msg, field=f"sensor_model.{name}")
-
-    def __len__(self) -> int:
-        return len(self.voxels if self.voxels is not None else self.points)  # type: ignore[arg-type]
 
 
 def unpack_array(packed: Any, field: str, max_rows: int) -> np.ndarray:
@@ -274,3 +239,105 @@ def belief_grid_stream(
                     yield layer[start : start + _GRID_CHUNK].astype("<f4", copy=False).tobytes()
 
     return length, chunks()
+
+
+#: The OpenAPI request body of POST /v1/sessions/{id}/observations: the JSON batch, or the same as msgpack.
+OBSERVATION_REQUEST_BODY = {
+    "required": True,
+    "content": {
+        "application/json": {"schema": {"$ref": "#/components/schemas/ObservationBatchJson"}},
+        "application/msgpack": {
+            "schema": {
+                "type": "object",
+                "description": "The same batch as msgpack with raw little-endian arrays (app/api/wire.py).",
+                "additionalProperties": False,
+                "properties": {
+                    "stamp": {"type": "number"},
+                    "voxels": {"$ref": "#/components/schemas/PackedArray"},
+                    "points": {"$ref": "#/components/schemas/PackedArray"},
+                    "labels": {
+                        "oneOf": [
+                            {"$ref": "#/components/schemas/PackedArray"},
+                            {"type": "array", "items": {"type": "string"}},
+                        ]
+                    },
+                    "p_target": {"$ref": "#/components/schemas/PackedArray"},
+                    "sensor_model": {"$ref": "#/components/schemas/SensorModelIn"},
+                },
+            }
+        },
+    },
+}
+
+#: The OpenAPI responses of GET /v1/sessions/{id}/belief besides its errors: the summary or the grid.
+BELIEF_RESPONSES: dict[int | str, dict[str, object]] = {
+    200: {
+        "description": "The posterior summary (JSON), or with format=grid the whole posterior (msgpack).",
+        "content": {"application/msgpack": {"schema": {"type": "string", "format": "binary"}}},
+        "headers": {"ETag": {"description": "The belief version.", "schema": {"type": "string"}}},
+    },
+    304: {"description": "Not modified since the ETag given in If-None-Match."},
+}
+
+_JSON_BATCH = TypeAdapter(ObservationBatchJson)
+
+
+def decode_json_batch(raw: bytes, max_voxels: int, max_errors: int) -> ObservationBatch:
+    """A JSON batch (`ObservationBatchJson`), decoded as `decode_msgpack_batch` decodes its twin."""
+    body = validate_json(_JSON_BATCH, raw, max_errors)
+    n = len(body.voxels or body.points or [])
+    check_batch_size(max(n, len(body.labels or body.p_target or [])), max_voxels)
+    labels: np.ndarray | LabelNames | None = None
+    if body.labels is not None:
+        if body.labels and isinstance(body.labels[0], str):
+            labels = LabelNames.of(body.labels)
+        else:
+            labels = np.asarray(body.labels, dtype=np.int64)
+    return ObservationBatch(
+        stamp=body.stamp,
+        voxels=np.asarray(body.voxels, dtype=np.int64).reshape(-1, 3) if body.voxels is not None else None,
+        points=np.asarray(body.points, dtype=np.float64).reshape(-1, 3) if body.points is not None else None,
+        labels=labels,
+        p_target=np.asarray(body.p_target, dtype=np.float64) if body.p_target is not None else None,
+        tp=body.sensor_model.tp if body.sensor_model else None,
+        fp=body.sensor_model.fp if body.sensor_model else None,
+    )
+
+
+#: msgpack bodies up to this size (a 16k-voxel camera view) are decoded on the event loop: a few
+#: milliseconds, less than the two thread switches a worker thread would cost.
+INLINE_DECODE_BYTES = 256 << 10
+
+
+async def read_batch(request: Request, run: Runner, max_voxels: int, max_errors: int) -> ObservationBatch:
+    """The request's observation batch, JSON or msgpack (415 otherwise); large ones decoded by `run`."""
+    content_type = media_type(request)
+    if content_type in MSGPACK_TYPES:
+        raw = await request.body()
+        decode = partial(decode_msgpack_batch, raw, max_voxels)
+        return decode() if len(raw) <= INLINE_DECODE_BYTES else await run(decode)
+    if content_type == "application/json":
+        return await run(decode_json_batch, await json_bytes(request), max_voxels, max_errors)
+    msg = f"unsupported content type {content_type!r}: send application/json or application/msgpack"
+    raise UnsupportedMediaType(msg, field="content-type")
+
+
+def belief_grid_response(
+    state: Session, layers: bool, run: Runner, release: Callable[[], None]
+) -> StreamingResponse:
+    """The whole posterior (and layers) of `state` as a streamed msgpack answer; each chunk is made by `run`
+    (a worker thread) and `release` is called after the last one is sent or the client hung up."""
+    belief = state.belief
+    length, chunks = belief_grid_stream(
+        state.id, state.version, state.grid.to_dict(), belief.lang, belief.vis, layers
+    )
+
+    async def body() -> AsyncIterator[bytes]:
+        try:
+            while (chunk := await run(next, chunks, None)) is not None:
+                yield chunk
+        finally:
+            release()
+
+    headers = {"ETag": f'"v{state.version}"', "Content-Length": str(length)}
+    return StreamingResponse(body(), media_type="application/msgpack", headers=headers)

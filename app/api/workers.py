@@ -42,8 +42,7 @@ def _load(settings: Settings, parent_pid: int) -> None:
     load the local models."""
     global _sensors
     from app.allocator import keep_freed_buffers
-    from app.api.app import freeze_startup_objects
-    from app.api.services import build_sensors
+    from app.api.bootstrap import build_sensors, freeze_startup_objects
 
     threading.Thread(target=_exit_with_parent, args=(parent_pid,), daemon=True).start()
     keep_freed_buffers()

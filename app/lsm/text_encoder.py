@@ -356,10 +356,13 @@ def _load_transformer(model_dir: Path) -> tuple[Any, Any]:
     return tokenizer, model
 
 
-@lru_cache(maxsize=1)
-def default_text_encoder() -> TextEncoder:
-    """The shipped MiniLM, loaded once per process and shared (the LSM, the built-in proposer), at the
-    settings' precision (`VLMAP_TEXT_ENCODER_PRECISION`)."""
-    from app.settings import get_settings
+@lru_cache(maxsize=2)
+def default_text_encoder(precision: str | None = None) -> TextEncoder:
+    """The shipped MiniLM, loaded once per process and precision and shared (the LSM, the built-in
+    proposer); `precision` defaults to the process settings' (`VLMAP_TEXT_ENCODER_PRECISION`), and the
+    service passes its own settings' so that `create_app(settings)` is obeyed."""
+    if precision is None:
+        from app.settings import get_settings
 
-    return TextEncoder(precision=get_settings().text_encoder_precision)
+        precision = get_settings().text_encoder_precision
+    return TextEncoder(precision=precision)

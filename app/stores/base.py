@@ -1,12 +1,9 @@
-"""The session-store interface and what both stores share (id rules, binary codecs).
+"""The session-store interface and what both stores share (id rules, binary codecs, the named deltas).
 
-Every store method is safe to call from many threads at once (the API calls stores from a threadpool),
-and updates to one session are serialised, so concurrent updates add up exactly as if applied one after
-the other. Versions start at 0 on creation and grow by one with every acknowledged update (utterance,
-observation batch, detection batch, scene-graph replacement, target-label change).
-
-A session created with target label "" has no target class yet: `apply_observations` raises `Conflict`
-until `set_target_label` names one; `apply_detections` needs no class.
+A store keeps sessions and applies *changes* to them; it does no belief arithmetic of its own beyond
+applying a `Delta` with `app.belief.fusion`'s functions. The use-cases (`app.sessions`) compute each delta
+as a pure function of a `SessionView` (`Change`), so the fusion of an utterance or a batch is written once,
+whatever the store. Versions start at 0 on creation and grow by one with every acknowledged update.
 
 Expiry: a session expires `ttl_s` seconds after its last write (creation or update); reads do not extend
 it. An expired session behaves as deleted (`NotFound`).
@@ -14,24 +11,26 @@ it. An expired session behaves as deleted (`NotFound`).
 Idempotency: every change takes an optional `Idempotency` (a client's Idempotency-Key and the fingerprint
 of its request). The session remembers the key with the change, atomically (`IdempotencyRecord`: in the
 same log record or commit), for `idempotency_window_s` and at most `idempotency_keys` keys; a change that
-brings a remembered key changes nothing and raises `AlreadyApplied` with the record, so that a retry of an
-update whose answer was lost (a timeout, a replica killed, a Redis failover) is applied once. A deleted
-session's delete record stays for the window.
+brings a remembered key changes nothing and raises `AlreadyApplied` with the record (which names the
+session's owner, so that the caller's access is checked before the first answer is given again), so that
+a retry of an update whose answer was lost (a timeout, a replica killed, a Redis failover) is applied
+once. A deleted session's delete record stays for the window.
 """
 
 from __future__ import annotations
 
 import re
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import msgpack
 import numpy as np
 
-from app.belief.session import BeliefState, Labels, Session, SessionInfo, UpdateResult
-from app.belief.summary import PosteriorSummary
+from app.belief import fusion
+from app.belief.grid import VoxelGrid
+from app.belief.session import IncrementBatch, ObservationModel, Session, SessionInfo, UpdateResult
 from app.errors import AlreadyApplied, InvalidInput, LimitExceeded
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
@@ -41,9 +40,6 @@ DEFAULT_TTL_S = 24 * 3600.0
 
 # Ids become file names (memory store) and key parts (Redis): letters, digits, ".", "_", "-"; no leading dot.
 _SESSION_ID = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9._\-]{0,127}")
-
-#: Called with a session's robot id before an update changes it; raises to refuse (e.g. `Forbidden`).
-Authorize = Callable[[str], None]
 
 #: Default window and count of the Idempotency-Keys a session remembers.
 DEFAULT_IDEMPOTENCY_WINDOW_S = 3600.0
@@ -127,11 +123,89 @@ class IdempotencyLog:
         return list(self._records.items())
 
 
+@dataclass(frozen=True)
+class LanguageDelta:
+    """An utterance's term of the language layer: its mixture (float64, what a log keeps and replays) and
+    equation (3)'s increment on the session's grid, `app.belief.session.language_log_likelihood`."""
+
+    mixture: GaussianMixture
+    log_likelihood: np.ndarray  # (N,) float64
+
+
+@dataclass(frozen=True)
+class MetaDelta:
+    """A change of what turns messages into increments: the target class, the scene graph, and the mapped
+    look-alikes under them (`app.belief.session.mapped_look_alikes`; stores that keep them write them)."""
+
+    target_label: str | None = None
+    scene_graph: SceneGraph | None = None
+    look_alikes: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Delta:
+    """What one update changes, in named parts; a store applies them in one atomic step and one version."""
+
+    language: LanguageDelta | None = None
+    vision: IncrementBatch | None = None
+    meta: MetaDelta | None = None
+
+    def result(self, session_id: str, version: int, n_voxels: int) -> UpdateResult:
+        """The update's answer: voxels the vision part touched (all of them for a language term)."""
+        if self.language is not None:
+            return UpdateResult(session_id, version, n_voxels)
+        if self.vision is not None:
+            return UpdateResult(session_id, version, len(self.vision.flat_idx), self.vision.n_outside)
+        return UpdateResult(session_id, version, 0)
+
+
+class SessionView(Protocol):
+    """A session's current state as a store hands it to a `Change` (read-only; its parts load lazily)."""
+
+    @property
+    def id(self) -> str: ...
+
+    @property
+    def robot_id(self) -> str: ...
+
+    @property
+    def version(self) -> int: ...
+
+    @property
+    def target_label(self) -> str: ...
+
+    @property
+    def grid(self) -> VoxelGrid: ...
+
+    @property
+    def label_map(self) -> Mapping[int, str]: ...
+
+    def scene_graph(self) -> SceneGraph: ...
+
+    def observer(self) -> ObservationModel:
+        """The session's observation model (its mapped look-alikes included)."""
+        ...
+
+
+@dataclass(frozen=True)
+class Change:
+    """An update: `compute(view) -> Delta`, a pure function of the session's current state (it may raise to
+    refuse the update, which then changes nothing; it may run more than once when a concurrent writer
+    came first). `inline`: cheap enough to compute on the event loop when the store holds the state in
+    memory and needs no I/O to apply it."""
+
+    compute: Callable[[SessionView], Delta]
+    inline: bool = False
+
+
 @runtime_checkable
 class SessionStore(Protocol):
-    """Where sessions live between requests; `MemorySessionStore` and `RedisSessionStore` implement it."""
+    """Where sessions live between requests; `MemorySessionStore` and `RedisSessionStore` implement it.
 
-    def create(
+    Every method may be called from many tasks at once; the store decides what runs on the event loop and
+    what on a worker thread (I/O waits, lock waits, work on whole layers)."""
+
+    async def create(
         self, session: Session, *, max_per_robot: int | None = None, idempotency: Idempotency | None = None
     ) -> SessionInfo:
         """Store a new session (its current layers and version included); InvalidInput if the id exists,
@@ -139,138 +213,77 @@ class SessionStore(Protocol):
         (checked atomically with the creation)."""
         ...
 
-    def get(self, session_id: str) -> Session:
-        """A copy of the whole session, layers included; NotFound if absent or expired."""
+    async def delete(self, session_id: str, *, idempotency: Idempotency | None = None) -> None:
+        """Remove a session; NotFound if absent (AlreadyApplied if a deleted session remembers the key)."""
         ...
 
-    def info(self, session_id: str) -> SessionInfo:
-        """The session's metadata (grid, label map, sensor model, version) without reading its layers."""
-        ...
-
-    async def owner_and_version(self, session_id: str) -> tuple[str, int]:
-        """The session's robot id and current version, on the event loop (no worker thread): what a poll
-        needs to check access and its ETag. NotFound if absent or expired."""
-        ...
-
-    def scene_graph(self, session_id: str) -> SceneGraph:
-        """The session's current scene graph, without reading its layers."""
-        ...
-
-    def list(self, robot_id: str | None = None) -> list[SessionInfo]:
+    async def list(self, robot_id: str | None = None) -> list[SessionInfo]:
         """Live sessions (of one robot, if given), oldest first."""
         ...
 
-    def delete(
-        self, session_id: str, *, authorize: Authorize | None = None, idempotency: Idempotency | None = None
-    ) -> None:
-        """Remove a session; NotFound if absent. `authorize(robot_id)` as in `apply_observations`."""
+    async def head(self, session_id: str) -> SessionInfo:
+        """The session's metadata (robot, version, last update, grid, target, label map), without its scene
+        graph or layers: what access checks and ETags need. NotFound if absent or expired."""
         ...
 
-    def replace_scene_graph(
-        self, session_id: str, scene_graph: SceneGraph, *, idempotency: Idempotency | None = None
-    ) -> int:
-        """Swap the scene graph (the grid and the layers stay); returns the new version."""
+    async def scene_graph(self, session_id: str) -> SceneGraph:
+        """The session's current scene graph, without its layers."""
         ...
 
-    def set_target_label(self, session_id: str, label: str) -> int:
-        """Name the target class (`app.belief.session.check_target_label`); returns the new version."""
+    async def load(self, session_id: str) -> Session:
+        """A consistent copy of the whole session, layers and version included (the caller's to keep)."""
         ...
 
-    def apply_utterance(
-        self,
-        session_id: str,
-        mixture: GaussianMixture,
-        *,
-        target_label: str | None = None,
-        idempotency: Idempotency | None = None,
+    async def summary_get(self, session_id: str, version: int, options: str) -> dict[str, Any] | None:
+        """A summary (`PosteriorSummary.to_dict`) of this version with these options that some process put,
+        if the store keeps them (shared by replicas); None otherwise."""
+        ...
+
+    async def summary_put(self, session_id: str, version: int, options: str, summary: dict[str, Any]) -> None:
+        """Offer a version's summary to other processes (a store without sharing drops it)."""
+        ...
+
+    async def update(
+        self, session_id: str, change: Change, *, idempotency: Idempotency | None = None
     ) -> UpdateResult:
-        """Fuse one utterance's language mixture (fusion equation (3)); `target_label`, when given, names the
-        target class in the same update if the session has none yet."""
+        """Apply `change.compute(view)` to the session's current state, atomically, as the next version.
+
+        Updates of one session are serialised: concurrent ones add up as if applied one after the other.
+        A remembered Idempotency-Key changes nothing and raises `AlreadyApplied` (module docstring)."""
         ...
 
-    def apply_observations(
-        self,
-        session_id: str,
-        labels: Labels,
-        *,
-        points: np.ndarray | None = None,
-        flat_idx: np.ndarray | None = None,
-        voxels: np.ndarray | None = None,
-        tp: float | None = None,
-        fp: float | None = None,
-        authorize: Authorize | None = None,
-        idempotency: Idempotency | None = None,
-    ) -> UpdateResult:
-        """Fuse labelled voxels (fusion equation (4)); tp/fp override the session's sensor model.
-
-        The voxels are given as exactly one of points (n, 3), flat indices (n,) or integer voxel coordinates
-        (n, 3); points and coordinates outside the grid are counted in `voxels_outside`, not fused.
-        `authorize(robot_id)`, if given, is called with the owner of the state the update is computed from,
-        before anything changes; what it raises refuses the update. Conflict while the session's target
-        label is "" (unknown).
-        """
-        ...
-
-    def apply_detections(
-        self,
-        session_id: str,
-        p_target: np.ndarray,
-        *,
-        points: np.ndarray | None = None,
-        flat_idx: np.ndarray | None = None,
-        voxels: np.ndarray | None = None,
-        prior: float = 0.5,
-        authorize: Authorize | None = None,
-        idempotency: Idempotency | None = None,
-    ) -> UpdateResult:
-        """Fuse detector probabilities (fusion equation (5)); the voxels and `authorize` as in
-        `apply_observations`."""
-        ...
-
-    async def apply_observations_async(
-        self,
-        session_id: str,
-        labels: Labels,
-        *,
-        points: np.ndarray | None = None,
-        flat_idx: np.ndarray | None = None,
-        voxels: np.ndarray | None = None,
-        tp: float | None = None,
-        fp: float | None = None,
-        authorize: Authorize | None = None,
-        idempotency: Idempotency | None = None,
-    ) -> UpdateResult:
-        """`apply_observations` for a caller on an event loop, which it never blocks on I/O or a lock."""
-        ...
-
-    async def apply_detections_async(
-        self,
-        session_id: str,
-        p_target: np.ndarray,
-        *,
-        points: np.ndarray | None = None,
-        flat_idx: np.ndarray | None = None,
-        voxels: np.ndarray | None = None,
-        prior: float = 0.5,
-        authorize: Authorize | None = None,
-        idempotency: Idempotency | None = None,
-    ) -> UpdateResult:
-        """`apply_detections` for a caller on an event loop, which it never blocks on I/O or a lock."""
-        ...
-
-    def read_layers(self, session_id: str) -> BeliefState:
-        """A consistent copy of the belief layers and their version."""
-        ...
-
-    def summary(self, session_id: str, **kwargs: Any) -> PosteriorSummary:
-        """`app.belief.summary.summarize` of one consistent state of the session, with its `version`."""
-        ...
-
-    def purge_expired(self) -> int:
+    async def purge_expired(self) -> int:
         """Drop expired sessions now; returns how many."""
         ...
 
     def close(self) -> None: ...
+
+
+def next_language_layer(session: Session, language: LanguageDelta) -> np.ndarray:
+    """The session's language layer after the term (equation (3), shifted and clamped), as a new array:
+    computed before a change is logged, so that a logged change always applies."""
+    lang = session.belief.lang.copy()
+    fusion.apply_language(lang, language.log_likelihood, session.belief.limits.lang_span)
+    return lang
+
+
+def apply_delta(session: Session, delta: Delta, lang: np.ndarray | None, now: float) -> None:
+    """Apply a delta to a session held in memory, as one version (`lang`: its `next_language_layer`)."""
+    belief = session.belief
+    if lang is not None:
+        belief.lang = lang
+    if delta.meta is not None:
+        if delta.meta.scene_graph is not None:
+            session.replace_scene_graph(delta.meta.scene_graph)
+        if delta.meta.target_label is not None:
+            session.set_target_label(delta.meta.target_label)
+    if delta.vision is not None:
+        limits = belief.limits
+        fusion.apply_increments(
+            belief.vis, delta.vision.flat_idx, delta.vision.increments, limits.vis_min, limits.vis_max
+        )
+    belief.version += 1
+    session.updated_at = now
 
 
 def session_limit_error(robot_id: str, limit: int) -> LimitExceeded:

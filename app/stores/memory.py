@@ -27,9 +27,7 @@ session, then registry, then log.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
-import dataclasses
 import fcntl
 import logging
 import os
@@ -37,47 +35,49 @@ import struct
 import threading
 import time
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from functools import partial
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, TypeVar
 
+import anyio.to_thread
 import msgpack
 import numpy as np
 
-from app.belief import fusion
+from app.belief.grid import VoxelGrid
 from app.belief.session import (
-    DEFAULT_MAX_BATCH_VOXELS,
-    BeliefState,
     IncrementBatch,
-    Labels,
+    ObservationModel,
     Session,
     SessionInfo,
     UpdateResult,
-    check_target_label,
     language_log_likelihood,
 )
-from app.belief.summary import PosteriorSummary, summarize
 from app.errors import InvalidInput, NotFound, StoreUnavailable
-from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
 from app.stores.base import (
     DEFAULT_IDEMPOTENCY_KEYS,
     DEFAULT_IDEMPOTENCY_WINDOW_S,
     DEFAULT_TTL_S,
-    Authorize,
+    Change,
+    Delta,
     Idempotency,
     IdempotencyLog,
     IdempotencyRecord,
+    LanguageDelta,
+    MetaDelta,
+    apply_delta,
     check_session_id,
     compact_indices,
-    float64_mixture,
+    next_language_layer,
     pack_array,
     pack_mixture,
     session_limit_error,
     unpack_array,
     unpack_mixture,
 )
+
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -231,7 +231,6 @@ class MemorySessionStore:
         ttl_s: float | None = DEFAULT_TTL_S,
         snapshot_every: int = DEFAULT_SNAPSHOT_EVERY,
         snapshot_bytes: int = DEFAULT_SNAPSHOT_BYTES,
-        max_batch_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
         idempotency_window_s: float = DEFAULT_IDEMPOTENCY_WINDOW_S,
         idempotency_keys: int = DEFAULT_IDEMPOTENCY_KEYS,
         clock: Callable[[], float] = time.time,
@@ -239,7 +238,6 @@ class MemorySessionStore:
         self.ttl_s = ttl_s
         self.snapshot_every = snapshot_every
         self.snapshot_bytes = snapshot_bytes
-        self.max_batch_voxels = max_batch_voxels
         self.idempotency_window_s = idempotency_window_s
         self.idempotency_keys = idempotency_keys
         self._clock = clock
@@ -258,7 +256,7 @@ class MemorySessionStore:
             except OSError as exc:
                 msg = f"cannot open the session data directory {self._dir}: {exc}"
                 raise StoreUnavailable(msg) from exc
-        self.purge_expired()
+        self._purge_expired()
 
     # -- durability -----------------------------------------------------------------------------------------
 
@@ -335,23 +333,9 @@ class MemorySessionStore:
         if "idem" in record:
             entry.keys.add(record["idem"][0], IdempotencyRecord.unpack(record["idem"][1]))
         session = entry.session
-        if op == "utterance":
-            session.belief.apply_utterance(unpack_mixture(record["mixture"]))
-            if "target" in record:
-                session.set_target_label(record["target"])
-        elif op == "increments":
-            idx = unpack_array(record["idx"]).astype(np.int64)
-            session.belief.apply_increments(IncrementBatch(idx, unpack_array(record["inc"])))
-        elif op == "scene_graph":
-            session.replace_scene_graph(SceneGraph.model_validate(record["scene_graph"]))
-            session.belief.version += 1
-        elif op == "target":
-            session.set_target_label(record["label"])
-            session.belief.version += 1
-        else:
-            msg = f"unknown session-log operation {op!r}"
-            raise StoreUnavailable(msg)
-        session.updated_at = record["t"]
+        delta = _delta_of(record, session)
+        lang = next_language_layer(session, delta.language) if delta.language is not None else None
+        apply_delta(session, delta, lang, record["t"])
         entry.lsn = lsn
 
     def _append(self, record: dict[str, Any]) -> int:
@@ -463,17 +447,17 @@ class MemorySessionStore:
                 raise NotFound(msg)
             yield entry
 
-    def _remove(
-        self, entry: _Entry, authorize: Authorize | None = None, idempotency: Idempotency | None = None
-    ) -> bool:
+    async def _off_loop(self, func: Callable[[], T]) -> T:
+        """Run on a worker thread: what waits for a session's lock or appends to the log."""
+        return await anyio.to_thread.run_sync(func)
+
+    def _remove(self, entry: _Entry, idempotency: Idempotency | None = None) -> bool:
         """Log the deletion and forget the session; False if someone else removed it first. With a key, the
         session's keys and the delete's stay as a tombstone."""
         with entry.lock:
             if entry.deleted:
                 return False
             now = self._clock()
-            if authorize is not None:
-                authorize(entry.session.robot_id)
             entry.keys.check(idempotency, now)
             record: dict[str, Any] = {"op": "delete", "sid": entry.session.id, "t": now}
             remembered = None
@@ -495,8 +479,8 @@ class MemorySessionStore:
                     del self._entries[entry.session.id]
         return True
 
-    def create(
-        self, session: Session, *, max_per_robot: int | None = None, idempotency: Idempotency | None = None
+    def _create(
+        self, session: Session, max_per_robot: int | None, idempotency: Idempotency | None
     ) -> SessionInfo:
         self._check_open()
         check_session_id(session.id)
@@ -546,244 +530,127 @@ class MemorySessionStore:
         self._maybe_compact()
         return stored.info()
 
-    def get(self, session_id: str) -> Session:
-        with self._locked(session_id) as entry:
-            return entry.session.copy()
+    async def create(
+        self, session: Session, *, max_per_robot: int | None = None, idempotency: Idempotency | None = None
+    ) -> SessionInfo:
+        return await self._off_loop(partial(self._create, session, max_per_robot, idempotency))
 
-    def info(self, session_id: str) -> SessionInfo:
-        with self._locked(session_id) as entry:
-            return entry.session.info()
-
-    async def owner_and_version(self, session_id: str) -> tuple[str, int]:
-        # No session lock (an update may hold it for milliseconds, and this runs on the event loop): the
-        # version is one attribute, read as before or after a concurrent update. Expired sessions are left
-        # for the next locked read or the purge to remove (that writes the log).
+    def _head(self, session_id: str) -> _Entry:
+        """The live entry, without its lock (an update may hold that for milliseconds, and this runs on the
+        event loop): what it holds is read as before or after a concurrent update. Expired sessions are left
+        for the next locked read or the purge to remove (that writes the log)."""
         self._check_open()
         with self._registry_lock:
             entry = self._entries.get(session_id)
         if entry is None or entry.deleted or self._expired(entry.session, self._clock()):
             msg = f"no session {session_id!r}"
             raise NotFound(msg)
-        return entry.session.robot_id, entry.session.version
+        return entry
 
-    def scene_graph(self, session_id: str) -> SceneGraph:
+    async def head(self, session_id: str) -> SessionInfo:
+        return self._head(session_id).session.info()
+
+    async def scene_graph(self, session_id: str) -> SceneGraph:
+        return self._head(session_id).session.scene_graph  # replaced whole, never changed in place
+
+    def _load(self, session_id: str) -> Session:
         with self._locked(session_id) as entry:
-            return entry.session.scene_graph  # replaced whole, never changed in place: no copy needed
+            return entry.session.copy()
 
-    def list(self, robot_id: str | None = None) -> list[SessionInfo]:
+    async def load(self, session_id: str) -> Session:
+        return await self._off_loop(partial(self._load, session_id))
+
+    async def summary_get(self, session_id: str, version: int, options: str) -> dict[str, Any] | None:
+        return None  # one process: its own summary cache is the only one
+
+    async def summary_put(self, session_id: str, version: int, options: str, summary: dict[str, Any]) -> None:
+        return None
+
+    def _list(self, robot_id: str | None) -> list[SessionInfo]:
         self._check_open()
-        self.purge_expired()
+        self._purge_expired()
         with self._registry_lock:
             sessions = [e.session for e in self._entries.values()]
         infos = [s.info() for s in sessions if robot_id is None or s.robot_id == robot_id]
         return sorted(infos, key=lambda info: (info.created_at, info.id))
 
-    def delete(
-        self, session_id: str, *, authorize: Authorize | None = None, idempotency: Idempotency | None = None
-    ) -> None:
+    async def list(self, robot_id: str | None = None) -> list[SessionInfo]:
+        return await self._off_loop(partial(self._list, robot_id))
+
+    def _delete(self, session_id: str, idempotency: Idempotency | None) -> None:
         try:
             entry = self._entry(session_id)
         except NotFound:
-            self._check_tombstone(session_id, authorize, idempotency)
+            self._check_tombstone(session_id, idempotency)
             raise
-        if not self._remove(entry, authorize, idempotency):
-            self._check_tombstone(session_id, authorize, idempotency)
+        if not self._remove(entry, idempotency):
+            self._check_tombstone(session_id, idempotency)
             msg = f"no session {session_id!r}"
             raise NotFound(msg)
         self._maybe_compact()
 
-    def _check_tombstone(
-        self, session_id: str, authorize: Authorize | None, idempotency: Idempotency | None
-    ) -> None:
-        """AlreadyApplied if a deleted session remembers the key (its owner authorised first)."""
+    async def delete(self, session_id: str, *, idempotency: Idempotency | None = None) -> None:
+        await self._off_loop(partial(self._delete, session_id, idempotency))
+
+    def _check_tombstone(self, session_id: str, idempotency: Idempotency | None) -> None:
+        """AlreadyApplied if a deleted session remembers the key."""
         with self._registry_lock:
             tombstone = self._tombstones.get(session_id)
-        if tombstone is None or idempotency is None:
-            return
-        robot_id, keys = tombstone
-        if authorize is not None:
-            authorize(robot_id)
-        with self._registry_lock:
-            keys.check(idempotency, self._clock())
+            if tombstone is not None and idempotency is not None:
+                tombstone[1].check(idempotency, self._clock())
 
-    def replace_scene_graph(
-        self, session_id: str, scene_graph: SceneGraph, *, idempotency: Idempotency | None = None
-    ) -> int:
-        with self._locked(session_id) as entry:
-            now = self._clock()
-            entry.keys.check(idempotency, now)
-            sg = scene_graph.model_dump(mode="json")
-            result = UpdateResult(session_id, entry.session.version + 1, 0)
-            remembered = self._record_of(idempotency, result, now)
-            record = {"op": "scene_graph", "sid": session_id, "t": now, "scene_graph": sg}
-            entry.lsn = self._append(record | _idem_field(idempotency, remembered))
-            self._keep(entry, idempotency, remembered)
-            entry.session.replace_scene_graph(scene_graph)
-            entry.session.belief.version += 1
-            entry.session.updated_at = now
-            version = entry.session.version
-        self._maybe_compact()
-        return version
-
-    def set_target_label(self, session_id: str, label: str) -> int:
-        with self._locked(session_id) as entry:
-            check_target_label(label, entry.session.label_map)  # before logging: a logged change applies
-            now = self._clock()
-            entry.lsn = self._append({"op": "target", "sid": session_id, "t": now, "label": label})
-            entry.session.set_target_label(label)
-            entry.session.belief.version += 1
-            entry.session.updated_at = now
-            version = entry.session.version
-        self._maybe_compact()
-        return version
-
-    @staticmethod
-    def _record_of(
-        idempotency: Idempotency | None, result: UpdateResult, now: float
-    ) -> IdempotencyRecord | None:
-        return None if idempotency is None else IdempotencyRecord.of(idempotency, result, now)
-
-    @staticmethod
-    def _keep(entry: _Entry, idempotency: Idempotency | None, record: IdempotencyRecord | None) -> None:
-        """Remember the key, once its update is logged."""
-        if idempotency is not None and record is not None:
-            entry.keys.add(idempotency.key, record)
-
-    def apply_utterance(
-        self,
-        session_id: str,
-        mixture: GaussianMixture,
-        *,
-        target_label: str | None = None,
-        idempotency: Idempotency | None = None,
+    def _update_locked(
+        self, entry: _Entry, change: Change, idempotency: Idempotency | None
     ) -> UpdateResult:
-        mixture = float64_mixture(mixture)
-        with self._locked(session_id) as entry:
-            session = entry.session
-            now = self._clock()
-            entry.keys.check(idempotency, now)
-            names_target = bool(target_label) and not session.target_label
-            if names_target:
-                check_target_label(target_label, session.label_map)  # type: ignore[arg-type]
-            # Validate and compute before logging, so that a logged operation always applies; this is the
-            # computation `BeliefState.apply_utterance` does on replay.
-            candidate = session.belief.lang.copy()
-            log_likelihood = language_log_likelihood(session.grid, mixture)
-            fusion.apply_language(candidate, log_likelihood, session.belief.limits.lang_span)
-            result = UpdateResult(session_id, session.version + 1, session.grid.n_voxels)
-            remembered = self._record_of(idempotency, result, now)
-            record = {"op": "utterance", "sid": session_id, "t": now, "mixture": pack_mixture(mixture)}
-            if names_target:
-                record["target"] = target_label
-            entry.lsn = self._append(record | _idem_field(idempotency, remembered))
-            self._keep(entry, idempotency, remembered)
-            session.belief.lang = candidate
-            session.belief.version += 1
-            if names_target:
-                session.set_target_label(target_label)  # type: ignore[arg-type]
-            session.updated_at = now
-        self._maybe_compact()
-        return result
-
-    def _apply_batch(
-        self, entry: _Entry, batch: IncrementBatch, idempotency: Idempotency | None
-    ) -> UpdateResult:
+        """Check the key, compute the delta, log it, then apply it (the session's lock is held)."""
         session = entry.session
         now = self._clock()
-        result = UpdateResult(session.id, session.version + 1, len(batch.flat_idx), batch.n_outside)
-        remembered = self._record_of(idempotency, result, now)
+        entry.keys.check(idempotency, now)
+        delta = change.compute(_View(session))
+        # Everything that can refuse the change runs before it is logged: a logged change always applies.
+        lang = next_language_layer(session, delta.language) if delta.language is not None else None
+        result = delta.result(session.id, session.version + 1, session.grid.n_voxels)
+        remembered = None
+        if idempotency is not None:
+            remembered = IdempotencyRecord.of(idempotency, result, now, robot_id=session.robot_id)
         if self._wal is not None:
-            idx = compact_indices(batch.flat_idx, session.grid.n_voxels)
-            record = {"op": "increments", "sid": session.id, "t": now, "idx": pack_array(idx)}
-            record |= _idem_field(idempotency, remembered)
-            entry.lsn = self._append({**record, "inc": pack_array(batch.increments)})
-        self._keep(entry, idempotency, remembered)
-        session.belief.apply_increments(batch)
-        session.updated_at = now
+            record = _record_of(delta, session) | {"op": "delta", "sid": session.id, "t": now}
+            entry.lsn = self._append(record | _idem_field(idempotency, remembered))
+        if idempotency is not None and remembered is not None:
+            entry.keys.add(idempotency.key, remembered)
+        apply_delta(session, delta, lang, now)
         return result
 
-    def apply_observations(
-        self,
-        session_id: str,
-        labels: Labels,
-        *,
-        points: np.ndarray | None = None,
-        flat_idx: np.ndarray | None = None,
-        voxels: np.ndarray | None = None,
-        tp: float | None = None,
-        fp: float | None = None,
-        authorize: Authorize | None = None,
-        idempotency: Idempotency | None = None,
-    ) -> UpdateResult:
+    def _update(self, session_id: str, change: Change, idempotency: Idempotency | None) -> UpdateResult:
         with self._locked(session_id) as entry:
-            if authorize is not None:
-                authorize(entry.session.robot_id)
-            entry.keys.check(idempotency, self._clock())
-            batch = entry.session.observation_batch(
-                labels,
-                points=points,
-                flat_idx=flat_idx,
-                voxels=voxels,
-                tp=tp,
-                fp=fp,
-                max_voxels=self.max_batch_voxels,
-            )
-            result = self._apply_batch(entry, batch, idempotency)
+            result = self._update_locked(entry, change, idempotency)
         self._maybe_compact()
         return result
 
-    def apply_detections(
-        self,
-        session_id: str,
-        p_target: np.ndarray,
-        *,
-        points: np.ndarray | None = None,
-        flat_idx: np.ndarray | None = None,
-        voxels: np.ndarray | None = None,
-        prior: float = 0.5,
-        authorize: Authorize | None = None,
-        idempotency: Idempotency | None = None,
+    async def update(
+        self, session_id: str, change: Change, *, idempotency: Idempotency | None = None
     ) -> UpdateResult:
-        with self._locked(session_id) as entry:
-            if authorize is not None:
-                authorize(entry.session.robot_id)
-            entry.keys.check(idempotency, self._clock())
-            batch = entry.session.detection_batch(
-                p_target,
-                points=points,
-                flat_idx=flat_idx,
-                voxels=voxels,
-                prior=prior,
-                max_voxels=self.max_batch_voxels,
-            )
-            result = self._apply_batch(entry, batch, idempotency)
-        self._maybe_compact()
-        return result
+        if change.inline and self._wal is None:
+            # Nothing to wait for but the session's lock: computed here when it is free (no thread switch).
+            entry = self._head(session_id)
+            if entry.lock.acquire(blocking=False):
+                try:
+                    if not entry.deleted:
+                        return self._update_locked(entry, change, idempotency)
+                finally:
+                    entry.lock.release()
+        return await self._off_loop(partial(self._update, session_id, change, idempotency))
 
-    async def apply_observations_async(self, session_id: str, *args: Any, **kwargs: Any) -> UpdateResult:
-        # On a worker thread: an update waits for the session's lock and (durable) appends to the log.
-        return await asyncio.to_thread(partial(self.apply_observations, session_id, *args, **kwargs))
-
-    async def apply_detections_async(self, session_id: str, *args: Any, **kwargs: Any) -> UpdateResult:
-        return await asyncio.to_thread(partial(self.apply_detections, session_id, *args, **kwargs))
-
-    def read_layers(self, session_id: str) -> BeliefState:
-        with self._locked(session_id) as entry:
-            return entry.session.belief.copy()
-
-    def summary(self, session_id: str, **kwargs: Any) -> PosteriorSummary:
-        with self._locked(session_id) as entry:
-            s = entry.session
-            summary = summarize(s.grid, s.belief.lang, s.belief.vis, s.scene_graph, **kwargs)
-            return dataclasses.replace(summary, version=s.version)
-
-    def purge_expired(self) -> int:
+    def _purge_expired(self) -> int:
         if self.ttl_s is None:
             return 0
         now = self._clock()
         with self._registry_lock:
             expired = [e for e in self._entries.values() if self._expired(e.session, now)]
         return sum(self._remove(entry) for entry in expired)
+
+    async def purge_expired(self) -> int:
+        return await self._off_loop(self._purge_expired)
 
     def close(self) -> None:
         """Release the data directory; the log is already durable, so nothing needs flushing."""
@@ -800,3 +667,77 @@ class MemorySessionStore:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class _View:
+    """`SessionView` of a session held in memory (read under its lock)."""
+
+    __slots__ = ("_session",)
+
+    def __init__(self, session: Session) -> None:
+        self._session = session
+
+    @property
+    def id(self) -> str:
+        return self._session.id
+
+    @property
+    def robot_id(self) -> str:
+        return self._session.robot_id
+
+    @property
+    def version(self) -> int:
+        return self._session.version
+
+    @property
+    def target_label(self) -> str:
+        return self._session.target_label
+
+    @property
+    def grid(self) -> VoxelGrid:
+        return self._session.grid
+
+    @property
+    def label_map(self) -> Mapping[int, str]:
+        return self._session.label_map
+
+    def scene_graph(self) -> SceneGraph:
+        return self._session.scene_graph
+
+    def observer(self) -> ObservationModel:
+        return self._session.observer
+
+
+def _record_of(delta: Delta, session: Session) -> dict[str, Any]:
+    """A delta's fields in a log record (the language term as its mixture: replay recomputes it)."""
+    record: dict[str, Any] = {}
+    if delta.language is not None:
+        record["mixture"] = pack_mixture(delta.language.mixture)
+    if delta.meta is not None:
+        if delta.meta.target_label is not None:
+            record["target"] = delta.meta.target_label
+        if delta.meta.scene_graph is not None:
+            record["scene_graph"] = delta.meta.scene_graph.model_dump(mode="json")
+    if delta.vision is not None:
+        record["idx"] = pack_array(compact_indices(delta.vision.flat_idx, session.grid.n_voxels))
+        record["inc"] = pack_array(delta.vision.increments)
+    return record
+
+
+def _delta_of(record: dict[str, Any], session: Session) -> Delta:
+    """The delta a log record holds (also the operations logged before deltas had one record kind)."""
+    op = record["op"]
+    if op not in ("delta", "utterance", "increments", "scene_graph", "target"):
+        msg = f"unknown session-log operation {op!r}"
+        raise StoreUnavailable(msg)
+    language = vision = meta = None
+    if "mixture" in record:
+        mixture = unpack_mixture(record["mixture"])
+        language = LanguageDelta(mixture, language_log_likelihood(session.grid, mixture))
+    if "idx" in record:
+        vision = IncrementBatch(unpack_array(record["idx"]).astype(np.int64), unpack_array(record["inc"]))
+    target = record.get("target", record.get("label"))
+    if target is not None or "scene_graph" in record:
+        sg = record.get("scene_graph")
+        meta = MetaDelta(target, SceneGraph.model_validate(sg) if sg is not None else None)
+    return Delta(language, vision, meta)

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Annotated, Any
+from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter
-from pydantic import TypeAdapter
 
 from app.api.bodies import JsonBody, json_request_body, schema_ref
 from app.api.deps import PrincipalDep, SensorsDep, ServicesDep, SettingsDep
@@ -21,13 +19,13 @@ from app.api.schemas import (
     MixtureOut,
     ModelRef,
     ParseOut,
-    SceneGraphPayload,
     TargetOut,
     UniformBoxOut,
 )
-from app.errors import InvalidInput, LimitExceeded
+from app.errors import LimitExceeded
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.sensor import Grounding, LanguageSensor
+from app.scene_graph.limits import check_coordinates, check_scene_graph
 from app.scene_graph.loader import parse_scene_graph
 from app.scene_graph.model import SceneGraph
 from app.settings import Settings
@@ -58,47 +56,24 @@ async def ground(
     return await services.run(respond, result, sensor, body.query_points)
 
 
-def scene_graph_payload_schema() -> dict[str, Any]:
-    """The OpenAPI schema of a bare `SceneGraphPayload` body (PUT .../scene-graph), as FastAPI wrote it when
-    it read that body itself (the definitions it refers to are the components')."""
-    schema = TypeAdapter(SceneGraphPayload).json_schema(ref_template="#/components/schemas/{model}")
-    schema.pop("$defs", None)
-    return {**schema, "title": "Scene Graph"}
-
-
-def check_coordinates(field: str, vectors: Sequence[Sequence[float]], settings: Settings) -> None:
-    """InvalidInput unless every number of `vectors` lies within +-`max_coordinate_m`: a map spans metres to
-    kilometres, and squares of larger numbers (a covariance, a distance) overflow downstream."""
-    values = np.asarray(vectors, dtype=np.float64)
-    if values.size and not np.all(np.abs(values) <= settings.max_coordinate_m):
-        msg = f"coordinates and sizes must lie within +-{settings.max_coordinate_m:g} m"
-        raise InvalidInput(msg, field=field)
-
-
-def check_scene_graph(scene_graph: SceneGraph, settings: Settings, field: str = "scene_graph") -> SceneGraph:
-    """The scene graph, once within the limits on objects, regions and coordinates (whatever its format)."""
-    if len(scene_graph.objects) > settings.max_objects:
-        msg = f"{field}: {len(scene_graph.objects)} objects exceed the limit of {settings.max_objects}"
-        raise LimitExceeded(msg, limit_name="max_objects")
-    if len(scene_graph.regions) > settings.max_regions:
-        msg = f"{field}: {len(scene_graph.regions)} regions exceed the limit of {settings.max_regions}"
-        raise LimitExceeded(msg, limit_name="max_regions")
-    check_coordinates(
-        f"{field}.objects", [v for o in scene_graph.objects for v in (o.center, o.size)], settings
-    )
-    check_coordinates(
-        f"{field}.regions", [v for r in scene_graph.regions for v in (r.center, r.size)], settings
-    )
-    return scene_graph
-
-
 def resolve_scene_graph(
     payload: SceneGraph | dict, settings: Settings, field: str = "scene_graph"
 ) -> SceneGraph:
     """The request's scene graph as a native one (normalised from another format), within the limits."""
     if isinstance(payload, SceneGraph):
-        return check_scene_graph(payload, settings, field)
-    return check_scene_graph(parse_scene_graph(payload, max_objects=settings.max_objects), settings, field)
+        return within_limits(payload, settings, field)
+    return within_limits(parse_scene_graph(payload, max_objects=settings.max_objects), settings, field)
+
+
+def within_limits(scene_graph: SceneGraph, settings: Settings, field: str) -> SceneGraph:
+    """`check_scene_graph` with the settings' limits."""
+    return check_scene_graph(
+        scene_graph,
+        max_objects=settings.max_objects,
+        max_regions=settings.max_regions,
+        max_coordinate_m=settings.max_coordinate_m,
+        field=field,
+    )
 
 
 def checked_request(body: GroundRequest, settings: Settings) -> SceneGraph:
@@ -109,7 +84,7 @@ def checked_request(body: GroundRequest, settings: Settings) -> SceneGraph:
             count, limit = len(body.query_points), settings.max_query_points
             msg = f"query_points: {count} points exceed the limit of {limit}"
             raise LimitExceeded(msg, limit_name="max_query_points")
-        check_coordinates("query_points", body.query_points, settings)
+        check_coordinates("query_points", body.query_points, settings.max_coordinate_m)
     return scene_graph
 
 

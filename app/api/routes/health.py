@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from app.api.deps import SensorsDep, StoreDep
+from app.api.deps import SensorsDep, SessionsDep
 from app.api.errors import error_responses
 from app.api.schemas import HealthResponse, ReadyResponse
 
@@ -18,6 +18,6 @@ async def healthz() -> HealthResponse:
 
 
 @router.get("/readyz", operation_id="readyz", response_model=ReadyResponse, responses=error_responses(503))
-async def readyz(sensors: SensorsDep, store: StoreDep) -> ReadyResponse:
+async def readyz(sensors: SensorsDep, _: SessionsDep) -> ReadyResponse:
     """Readiness: the grounding models are loaded and the session store is open."""
     return ReadyResponse(status="ready", grounder=sensors.default)

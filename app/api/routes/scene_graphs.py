@@ -10,7 +10,7 @@ from fastapi import APIRouter, Query, Request
 from app.api.bodies import json_bytes, media_type
 from app.api.deps import PrincipalDep, ServicesDep, SettingsDep
 from app.api.errors import error_responses
-from app.api.routes.ground import check_scene_graph
+from app.api.routes.ground import within_limits
 from app.errors import InvalidSceneGraph, UnsupportedMediaType
 from app.scene_graph.loader import SceneGraphFormat, parse_scene_graph
 from app.scene_graph.model import SceneGraph
@@ -91,4 +91,4 @@ def normalize(raw: bytes, binary: bool, fmt: SceneGraphFormat | None, settings: 
             msg = "a JSON scene graph must be an object"
             raise InvalidSceneGraph(msg, field="body")
         payload = decoded
-    return check_scene_graph(parse_scene_graph(payload, fmt, settings.max_objects), settings, "body")
+    return within_limits(parse_scene_graph(payload, fmt, settings.max_objects), settings, "body")

@@ -1,0 +1,408 @@
+"""The session use-cases, each written once: create, list, read, delete, replace the scene graph, utter,
+observe (labels or detections), summarise and download the grid.
+
+`SessionService` checks the caller's access against the session it acts on, turns requests into the pure
+changes of `app.sessions.changes` for the store, answers a retried request (an Idempotency-Key the store
+remembers) as the first time once the caller may see it, and owns the summary cache. What it computes on
+whole layers or grids runs on the worker threads (`run`); the store decides what else needs one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+import logging
+import math
+import uuid
+from collections.abc import Awaitable, Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+
+from app.belief.grid import VoxelGrid
+from app.belief.session import (
+    SensorModel,
+    Session,
+    SessionInfo,
+    UpdateResult,
+    check_target_label,
+    language_log_likelihood,
+    new_session,
+)
+from app.belief.summary import PosteriorSummary, place_voxels
+from app.errors import AlreadyApplied, IdempotencyKeyReused, InvalidInput, LimitExceeded, NotFound, VLMapError
+from app.grounding.sensor import Grounding, LanguageSensor
+from app.scene_graph.limits import check_coordinates
+from app.scene_graph.model import SceneGraph
+from app.sessions import changes
+from app.sessions.batch import ObservationBatch
+from app.sessions.changes import Caller
+from app.sessions.summaries import Belief, SummaryCache
+from app.settings import Settings
+from app.stores.base import Idempotency, IdempotencyRecord, SessionStore
+from app.vocabulary import head_noun, lemmas, lexical_match, object_nouns
+
+log = logging.getLogger("vlmap.sessions")
+T = TypeVar("T")
+#: Runs a function on a worker thread: `run(func, *args)`.
+Runner = Callable[..., Awaitable[Any]]
+#: Grounds an utterance in a scene graph with the parts the request named.
+Ground = Callable[[SceneGraph], Awaitable[tuple[Grounding, LanguageSensor]]]
+
+
+@dataclass(frozen=True)
+class Applied(Generic[T]):
+    """A change's outcome: `replayed` when it answers a retry of a keyed request (then `answer` is what the
+    first answer embedded beside the state, as its caller gave it)."""
+
+    value: T
+    replayed: bool = False
+    answer: bytes = b""
+
+
+@dataclass(frozen=True)
+class GridRequest:
+    """The voxel grid a new session asks for: around its scene graph, or between two corners."""
+
+    voxel_size: float
+    margin: float
+    min_corner: Sequence[float] | None = None
+    max_corner: Sequence[float] | None = None
+
+
+@dataclass(frozen=True)
+class NewSession:
+    """A request for a session: whose, on what map, looking for what (may be "": named later)."""
+
+    robot_id: str
+    scene_graph: SceneGraph
+    grid: GridRequest
+    target_label: str = ""
+    label_map: Mapping[str, str] | None = None  # label id (digits) -> class name
+    sensor_model: SensorModel | None = None
+
+
+@dataclass(frozen=True)
+class PreparedUtterance:
+    """An utterance grounded in a session's scene graph, and whether the session will fuse it."""
+
+    info: SessionInfo
+    grounding: Grounding
+    sensor: LanguageSensor
+    fused: bool
+    reason: str | None
+
+
+def utterance_verdict(target_label: str, result: Grounding) -> tuple[bool, str | None]:
+    """Whether a session looking for `target_label` fuses this grounding, and what to tell the caller.
+
+    Not fused: the session has a target class and the utterance's target phrase names an object class (its
+    lemmatised head noun, or the whole phrase, is one of `object_nouns()`) that no naming of the session's
+    matches (`lexical_match` 0; "bag" names a backpack loosely, "keys" a keychain). A phrase that names no
+    object ("it", "something", empty) fuses. An utterance that was not grounded fuses its broad prior, and
+    the reason says that the belief got only that.
+    """
+    spoken = result.proposal.parse.target
+    phrase = lemmas(spoken)
+    names_an_object = phrase in object_nouns() or head_noun(phrase) in object_nouns()
+    if target_label and names_an_object and lexical_match(phrase, lemmas(target_label)) == 0:
+        return (
+            False,
+            f"the utterance's target {spoken!r} is not the session's target {target_label!r}: not fused",
+        )
+    if not result.grounded:
+        why = f" ({result.proposal.reason})" if result.proposal.reason else ""
+        return True, f"not grounded{why}: the belief got only the broad prior"
+    return True, None
+
+
+def names_a_class(target: str, label_map: Mapping[int, str]) -> bool:
+    """Whether an utterance's target phrase can serve as the session's target class."""
+    try:
+        check_target_label(target, label_map)
+    except InvalidInput:
+        return False
+    return True
+
+
+def keyed_session_id(robot_id: str, idempotency: Idempotency) -> str:
+    """The id a keyed creation gives its session: the same for a retry, so that the store finds it."""
+    digest = hashlib.sha256(f"{robot_id}\0{idempotency.key}".encode()).digest()
+    return uuid.UUID(bytes=digest[:16]).hex
+
+
+class SessionService:
+    """The use-cases over one store (module docstring); `run` puts CPU work on the worker threads."""
+
+    def __init__(self, store: SessionStore, settings: Settings, run: Runner) -> None:
+        self.store = store
+        self.settings = settings
+        self.run = run
+        self.summaries = SummaryCache(watch_s=settings.summary_watch_s)
+        self._ahead: set[asyncio.Task[None]] = set()
+
+    # -- helpers --------------------------------------------------------------------------------------------
+
+    @staticmethod
+    def _replay(record: object, idempotency: Idempotency | None, caller: Caller) -> IdempotencyRecord:
+        """The first request's record, once the caller may write its session and the request is the same
+        (else a 422)."""
+        assert isinstance(record, IdempotencyRecord) and idempotency is not None  # only keyed changes replay
+        if record.robot_id:
+            caller.require_write(record.robot_id)
+        if record.fingerprint != idempotency.fingerprint:
+            msg = "this Idempotency-Key was used with another request; use a new key for a new request"
+            raise IdempotencyKeyReused(msg, field="Idempotency-Key")
+        return record
+
+    async def _readable(self, caller: Caller, session_id: str) -> SessionInfo:
+        info = await self.store.head(session_id)
+        caller.require_read(info.robot_id)
+        return info
+
+    async def _writable(self, caller: Caller, session_id: str) -> SessionInfo:
+        info = await self.store.head(session_id)
+        caller.require_write(info.robot_id)
+        return info
+
+    # -- the session record ---------------------------------------------------------------------------------
+
+    def _grid(self, request: GridRequest, scene_graph: SceneGraph) -> VoxelGrid:
+        limit = self.settings.max_grid_voxels
+        low_corner, high_corner = request.min_corner, request.max_corner
+        if low_corner is None and high_corner is None:
+            return VoxelGrid.around(
+                scene_graph, voxel_size=request.voxel_size, margin=request.margin, max_voxels=limit
+            )
+        if low_corner is None or high_corner is None:
+            msg = "give both min_corner and max_corner, or neither"
+            raise InvalidInput(msg, field="grid.min_corner")
+        check_coordinates("grid.min_corner", [low_corner], self.settings.max_coordinate_m)
+        check_coordinates("grid.max_corner", [high_corner], self.settings.max_coordinate_m)
+        low, high = np.asarray(low_corner, dtype=np.float64), np.asarray(high_corner, dtype=np.float64)
+        if not np.all(high > low):
+            msg = "max_corner must be above min_corner on every axis"
+            raise InvalidInput(msg, field="grid.max_corner")
+        shape = [math.ceil(float(extent) / request.voxel_size) for extent in high - low]  # no overflow
+        if math.prod(shape) > limit:
+            msg = f"the grid needs {math.prod(shape):,} voxels, more than the limit {limit:,}"
+            raise LimitExceeded(msg, limit_name="max_grid_voxels")
+        nx, ny, nz = shape
+        return VoxelGrid(origin=tuple(low), shape=(nx, ny, nz), voxel_size=request.voxel_size)
+
+    def _label_map(self, raw: Mapping[str, str] | None) -> dict[int, str]:
+        """The label map with integer ids (each key is 1-10 ASCII digits, as the API's schema checks)."""
+        limit = self.settings.max_label_map_entries
+        if raw is not None and len(raw) > limit:
+            msg = f"label_map: {len(raw)} entries exceed the limit of {limit}"
+            raise LimitExceeded(msg, limit_name="max_label_map_entries")
+        out: dict[int, str] = {}
+        for key, name in (raw or {}).items():
+            if int(key) >= 2**32:
+                msg = f"label ids are uint32 (below 4294967296), got {key}"
+                raise InvalidInput(msg, field=f"label_map.{key}")
+            out[int(key)] = name
+        return out
+
+    def _check_places(self, grid: VoxelGrid, scene_graph: SceneGraph) -> None:
+        """LimitExceeded unless the voxels of the scene graph's places on `grid` are within the limit: every
+        summary of the session sums the belief over them."""
+        total, limit = place_voxels(grid, scene_graph), self.settings.max_place_voxels
+        if total > limit:
+            msg = (
+                f"the scene graph's objects and regions cover {total:,} voxels of the grid (summed over "
+                f"them), more than the limit {limit:,}; use larger voxels or fewer, smaller boxes"
+            )
+            raise LimitExceeded(msg, limit_name="max_place_voxels")
+
+    def _new_session(self, request: NewSession, session_id: str | None) -> Session:
+        grid = self._grid(request.grid, request.scene_graph)
+        self._check_places(grid, request.scene_graph)
+        return new_session(
+            request.robot_id,
+            request.scene_graph,
+            request.target_label,
+            label_map=self._label_map(request.label_map),
+            sensor_model=request.sensor_model,
+            grid=grid,
+            max_voxels=self.settings.max_grid_voxels,
+            session_id=session_id,
+        )
+
+    async def create(
+        self, caller: Caller, request: NewSession, idempotency: Idempotency | None = None
+    ) -> Applied[SessionInfo]:
+        """A uniform belief over a grid around the robot's scene graph."""
+        caller.require_write(request.robot_id)
+        session_id = keyed_session_id(request.robot_id, idempotency) if idempotency is not None else None
+        session = await self.run(self._new_session, request, session_id)
+        try:
+            max_per_robot = self.settings.max_sessions_per_robot
+            info = await self.store.create(session, max_per_robot=max_per_robot, idempotency=idempotency)
+        except AlreadyApplied as exc:
+            self._replay(exc.record, idempotency, caller)
+            return Applied(await self.store.head(session.id), replayed=True)
+        return Applied(info)
+
+    async def sessions(self, caller: Caller, robot_id: str | None = None) -> list[SessionInfo]:
+        """The sessions the caller may read (of one robot, if given), oldest first."""
+        return [info for info in await self.store.list(robot_id) if caller.can_read(info.robot_id)]
+
+    async def get(self, caller: Caller, session_id: str) -> SessionInfo:
+        """A session's metadata."""
+        return await self._readable(caller, session_id)
+
+    async def delete(
+        self, caller: Caller, session_id: str, idempotency: Idempotency | None = None
+    ) -> Applied[None]:
+        """Delete a session and its belief."""
+        try:
+            await self._writable(caller, session_id)
+        except NotFound:
+            if idempotency is None:
+                raise
+            # Gone already: the store answers a retry of its delete from the record it left (checked below).
+        try:
+            await self.store.delete(session_id, idempotency=idempotency)
+        except AlreadyApplied as exc:
+            self._replay(exc.record, idempotency, caller)
+            return Applied(None, replayed=True)
+        return Applied(None)
+
+    async def replace_scene_graph(
+        self, caller: Caller, session_id: str, scene_graph: SceneGraph, idempotency: Idempotency | None = None
+    ) -> Applied[SessionInfo]:
+        """Use a new scene graph for later utterances and look-alikes (the grid and the layers stay)."""
+        info = await self._writable(caller, session_id)
+        await self.run(self._check_places, info.grid, scene_graph)
+        replayed = False
+        change = changes.scene_graph(scene_graph, caller=caller)
+        try:
+            await self.store.update(session_id, change, idempotency=idempotency)
+        except AlreadyApplied as exc:
+            self._replay(exc.record, idempotency, caller)
+            replayed = True
+        return Applied(await self.store.head(session_id), replayed=replayed)
+
+    # -- language -------------------------------------------------------------------------------------------
+
+    async def prepare_utterance(self, caller: Caller, session_id: str, ground: Ground) -> PreparedUtterance:
+        """Ground an utterance in the session's scene graph, once the caller may write the session."""
+        info = await self._writable(caller, session_id)
+        grounding, sensor = await ground(await self.store.scene_graph(session_id))
+        fused, reason = utterance_verdict(info.target_label, grounding)
+        return PreparedUtterance(info, grounding, sensor, fused, reason)
+
+    async def fuse_utterance(
+        self, caller: Caller, prepared: PreparedUtterance, idempotency: Idempotency | None = None
+    ) -> Applied[Belief]:
+        """Fuse a prepared utterance unless its verdict refused it; while the session has no target class, the
+        utterance's target phrase names it in the same update. `idempotency.answer` is remembered with it."""
+        info, replayed, answer = prepared.info, False, b""
+        if prepared.fused:
+            target = prepared.grounding.proposal.parse.target
+            names = None
+            if not info.target_label and target and names_a_class(target, info.label_map):
+                names = target
+            mixture = prepared.grounding.mixture
+            log_likelihood = await self.run(language_log_likelihood, info.grid, mixture)
+            change = changes.utterance(mixture, log_likelihood, info.grid, names_target=names, caller=caller)
+            try:
+                await self.store.update(info.id, change, idempotency=idempotency)
+            except AlreadyApplied as exc:
+                answer, replayed = self._replay(exc.record, idempotency, caller).answer, True
+        return Applied(await self.belief(caller, info.id), replayed=replayed, answer=answer)
+
+    # -- vision ---------------------------------------------------------------------------------------------
+
+    async def observe(
+        self,
+        caller: Caller,
+        session_id: str,
+        batch: ObservationBatch,
+        idempotency: Idempotency | None = None,
+        *,
+        with_summary: bool = True,
+    ) -> Applied[tuple[UpdateResult, Belief | None]]:
+        """Fuse one batch of labels or detections; with its summary, or with it made ahead in the background
+        for those who watch the session."""
+        change = changes.observations(batch, self.settings.max_batch_voxels, caller=caller)
+        replayed = False
+        try:
+            result = await self.store.update(session_id, change, idempotency=idempotency)
+        except AlreadyApplied as exc:
+            first = self._replay(exc.record, idempotency, caller)
+            result = UpdateResult(session_id, first.version, first.voxels_updated, first.voxels_outside)
+            replayed = True
+        belief = None
+        if with_summary:
+            belief = await self.belief(caller, session_id)
+        else:
+            self._summarise_ahead(session_id)
+        return Applied((result, belief), replayed=replayed)
+
+    # -- reading the belief ---------------------------------------------------------------------------------
+
+    async def poll(self, caller: Caller, session_id: str, top_k: int) -> SessionInfo:
+        """The session's metadata (its version names the belief), noting that someone watches its summary."""
+        info = await self._readable(caller, session_id)
+        self.summaries.watch(session_id, top_k)
+        return info
+
+    async def belief(
+        self, caller: Caller, session_id: str, top_k: int = 5, info: SessionInfo | None = None
+    ) -> Belief:
+        """The posterior summary of the current version (of `info`'s, when given), computed once per version
+        in this process, and once per version fleet-wide where the store shares summaries."""
+        if info is None:
+            info = await self._readable(caller, session_id)
+        return await self._belief(info, top_k)
+
+    async def _belief(self, info: SessionInfo, top_k: int) -> Belief:
+        cached = self.summaries.get(info.id, info.version, top_k)
+        if cached is not None:
+            return cached
+        options = json.dumps({"top_k": top_k}, sort_keys=True)
+        stored = await self.store.summary_get(info.id, info.version, options)
+        if stored is not None:
+            belief = Belief(info.id, info.version, info.target_label, PosteriorSummary.from_dict(stored))
+        else:
+            session = await self.store.load(info.id)  # may be newer than `info`
+            summary = await self.run(session.summary, top_k=top_k)
+            await self.store.summary_put(info.id, session.version, options, summary.to_dict())
+            belief = Belief(info.id, session.version, session.target_label, summary)
+        self.summaries.put(top_k, belief)
+        return belief
+
+    def _summarise_ahead(self, session_id: str) -> None:
+        """Summarise the session's new version in the background if someone watches it."""
+        top_ks = self.summaries.start_job(session_id)
+        if top_ks is None:
+            return
+        task = asyncio.get_running_loop().create_task(self._ahead_job(session_id, top_ks))
+        self._ahead.add(task)
+        task.add_done_callback(self._ahead.discard)
+
+    async def _ahead_job(self, session_id: str, top_ks: list[int]) -> None:
+        while True:
+            try:
+                info = await self.store.head(session_id)
+                for top_k in top_ks:
+                    await self._belief(info, top_k)
+            except VLMapError as exc:  # e.g. the session was deleted meanwhile; the next poll will say so
+                log.info("background summary of %s skipped: %s", session_id, exc)
+            if not self.summaries.end_job(session_id):
+                return
+
+    async def grid(self, caller: Caller, session_id: str) -> Session:
+        """A consistent copy of the whole belief (and its layers), for a download."""
+        await self._readable(caller, session_id)
+        return await self.store.load(session_id)
+
+    async def close(self) -> None:
+        """Stop summarising ahead (a job running now is cancelled)."""
+        for task in list(self._ahead):
+            task.cancel()
+        await asyncio.gather(*self._ahead, return_exceptions=True)
