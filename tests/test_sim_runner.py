@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import json
 import math
-from collections import Counter
+from collections import Counter, defaultdict
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ import pytest
 from app.belief.fusion import VIS_LOG_MAX, VIS_LOG_MIN
 from app.cli import main as vlmap_main
 from app.client import VLMapClient
+from app.sim.camera import Camera
 from app.sim.metrics import (
     SUCCESS_MASS,
     EpisodeOutcome,
@@ -29,6 +31,8 @@ from app.sim.metrics import (
     uniform_mass,
 )
 from app.sim.noise import LabelNoise
+from app.sim.perception import PerceptionConfig
+from app.sim.policy import trajectory
 from app.sim.report import render_table
 from app.sim.runner import (
     PreparedEpisode,
@@ -37,6 +41,7 @@ from app.sim.runner import (
     available_models,
     check_methods,
     check_service,
+    episode_rngs,
     load_episodes,
     prepare_episode,
     prepared_episodes,
@@ -188,22 +193,60 @@ def frames_equal(a: PreparedEpisode, b: PreparedEpisode) -> bool:
     )
 
 
-def test_same_seed_same_frames_whatever_the_episode_order() -> None:
+@pytest.mark.parametrize("perception", ["realistic", "ideal"])
+def test_same_seed_same_frames_whatever_the_episode_order(perception: str) -> None:
     episodes = load_episodes(CASES)
-    config = SimConfig(n_steps=6, seed=3)
+    config = SimConfig(n_steps=6, seed=3, perception=perception)
     forward = list(prepared_episodes(episodes, config, Counter()))
     backward = list(prepared_episodes(episodes[::-1], config, Counter()))[::-1]
     again = prepare_episode(episodes[0], config)
     assert frames_equal(forward[0], again)
     assert all(frames_equal(a, b) for a, b in zip(forward, backward, strict=True))
-    other_seed = prepare_episode(episodes[0], SimConfig(n_steps=6, seed=4))
+    other_seed = prepare_episode(episodes[0], SimConfig(n_steps=6, seed=4, perception=perception))
     assert not frames_equal(forward[0], other_seed)
 
 
-def test_frames_carry_the_observed_voxels_with_their_labels() -> None:
-    """Without noise the label ids name the true contents of each voxel index of the service's grid."""
+def test_perception_models_share_the_trajectory_not_the_labels() -> None:
     episode = load_episodes(CASES)[0]
-    config = SimConfig(n_steps=5, noise=LabelNoise(tp=1.0, fp=0.0, confusion=0.0))
+    ideal = prepare_episode(episode, SimConfig(n_steps=6, perception="ideal"))
+    realistic = prepare_episode(episode, SimConfig(n_steps=6))
+    assert SimConfig().perception == "realistic"  # the default
+    assert all(
+        np.array_equal(a.voxels, b.voxels) for a, b in zip(ideal.frames, realistic.frames, strict=True)
+    )
+    assert not frames_equal(ideal, realistic)
+    with pytest.raises(SimError, match="unknown perception model"):
+        SimConfig(perception="oracle")
+
+
+def test_ideal_perception_is_the_earlier_per_voxel_noise() -> None:
+    """`perception="ideal"` labels the frames as the earlier runs did, draw for draw: the old tables stay
+    reproducible."""
+    episode = load_episodes(CASES)[1]
+    config = SimConfig(n_steps=5, seed=2, perception="ideal")
+    prepared = prepare_episode(episode, config)
+    world = episode.world(prepared.grid)
+    trajectory_rng, noise_rng = episode_rngs(config.seed, episode.episode_id)
+    camera = Camera(config.camera)
+    names = np.array([prepared.label_map[k] for k in range(len(prepared.label_map))])
+    poses = trajectory(world, config.n_steps, trajectory_rng, config.policy)
+    for pose, frame in zip(poses, prepared.frames, strict=True):
+        seen = camera.observe(world, pose)
+        noisy = config.noise.corrupt(seen.labels, episode.target.label, noise_rng, vocabulary=world.labels)
+        assert np.array_equal(names[frame.label_ids], noisy)
+    assert config.sensor_model == (config.noise.tp, config.noise.fp)
+
+
+@pytest.mark.parametrize("perception", ["realistic", "ideal"])
+def test_frames_carry_the_observed_voxels_with_their_labels(perception: str) -> None:
+    """Without errors the label ids name the true class of each observed voxel of the service's grid."""
+    episode = load_episodes(CASES)[0]
+    flawless = PerceptionConfig(
+        max_recall=1.0, half_recall_area_px=1e-12, accuracy=1.0, lookalike_share=0.0, speckle=0.0
+    )
+    config = SimConfig(
+        n_steps=5, perception=perception, noise=LabelNoise(tp=1.0, fp=0.0, confusion=0.0), segmenter=flawless
+    )
     prepared = prepare_episode(episode, config)
     world = episode.world(prepared.grid)
     assert prepared.grid == episode.service_grid()
@@ -213,8 +256,25 @@ def test_frames_carry_the_observed_voxels_with_their_labels() -> None:
         assert np.all((frame.voxels >= 0) & (frame.voxels < np.array(prepared.grid.shape)))
         flat = prepared.grid.ijk_to_flat(frame.voxels.astype(np.int64))
         assert len(np.unique(flat)) == len(flat)
-        assert np.array_equal(names[frame.label_ids], world.labels_of(world.owner.ravel()[flat]))
+        truth = world.labels_of(world.owner.ravel()[flat])
+        got = names[frame.label_ids]
+        assert [class_key(str(n)) for n in got] == [class_key(str(n)) for n in truth]
         assert frame.sees_target == bool(np.isin(prepared.target_flat, flat).any())
+    summary = prepared.rates.summary()
+    assert summary["fp"] == 0.0 and summary["tp"] in (1.0, None)
+
+
+def test_realistic_rates_are_realised_and_the_service_told_them_misspecified() -> None:
+    episode = load_episodes(CASES)[0]
+    config = SimConfig(n_steps=30, seed=0)
+    prepared = prepare_episode(episode, config)
+    summary = prepared.rates.summary()
+    assert summary["voxels"] > 10_000
+    assert 0 < summary["fp"] < 0.05  # look-alikes and speckle, far below the ideal model's 0.05
+    true_tp, true_fp = config.segmenter.true_rates
+    told_tp, told_fp = config.sensor_model
+    m = config.segmenter.misspecification
+    assert (1 - told_tp, told_fp) == pytest.approx(((1 - true_tp) / m, true_fp / m))
 
 
 def test_unfit_episodes_are_skipped_by_reason() -> None:
@@ -244,7 +304,7 @@ def test_methods_are_checked() -> None:
 
 def reference_vision_masses(prepared: PreparedEpisode, config: SimConfig) -> list[float]:
     """Target mass at each checkpoint of a vision-only belief, fused voxel by voxel in plain Python."""
-    tp, fp = config.noise.tp, config.noise.fp
+    tp, fp = config.sensor_model
     target_key = class_key(prepared.episode.target.label)
     vis = np.zeros(prepared.grid.n_voxels)
     checkpoints = set(config.checkpoints)
@@ -288,6 +348,56 @@ def test_vision_only_masses_match_a_reference_fusion(service_url: str) -> None:
     assert np.allclose(run.outcome.mass, reference_vision_masses(prepared, config), rtol=1e-4, atol=1e-9)
 
 
+class RecordingClient(VLMapClient):
+    """A client that keeps what each session was created with and every observation batch it was sent."""
+
+    def __init__(self, url: str) -> None:
+        super().__init__(url)
+        self.created: dict[str, dict[str, Any]] = {}
+        self.batches: defaultdict[str, list[tuple[np.ndarray, np.ndarray]]] = defaultdict(list)
+
+    def create_session(
+        self, robot_id: str, scene_graph: Any, idempotency_key: str | None = None, **fields: Any
+    ) -> dict[str, Any]:
+        session = super().create_session(robot_id, scene_graph, idempotency_key, **fields)
+        self.created[session["id"]] = {"robot_id": robot_id, **fields}
+        return session
+
+    def send_observations(self, session_id: str, *args: Any, **batch: Any) -> dict[str, Any]:
+        self.batches[session_id].append((np.array(batch["voxels"]), np.array(batch["labels"])))
+        return super().send_observations(session_id, *args, **batch)
+
+
+def test_every_method_gets_the_same_episodes(service_url: str) -> None:
+    """Per episode, every method's session is created with the same grid, sensor model and label map and
+    sent exactly the same batches, in the same order."""
+    config = SimConfig(n_steps=4, n_checkpoints=2, seed=5)
+    methods = ["vision-only", "geometric", "fixed"]
+    with RecordingClient(service_url) as client:
+        result = run_simulation(client, load_episodes(CASES), 2, methods, config, progress=False)
+    assert len(result.records) == 2 and len(client.created) == 2 * len(methods)
+    sessions = list(client.created)  # in creation order: episode by episode, method by method
+    for episode in range(2):
+        group = sessions[episode * len(methods) : (episode + 1) * len(methods)]
+        assert [client.created[s]["robot_id"] for s in group] == [f"sim-{m}" for m in methods]
+        first = client.created[group[0]]
+        assert first["sensor_model"] == dict(zip(("tp", "fp"), config.sensor_model, strict=True))
+        for other in group[1:]:
+            created = client.created[other]
+            assert {k: created[k] for k in ("grid", "target_label", "sensor_model", "label_map")} == {
+                k: first[k] for k in ("grid", "target_label", "sensor_model", "label_map")
+            }
+            assert len(client.batches[other]) == len(client.batches[group[0]]) == config.n_steps
+            for (v0, l0), (v1, l1) in zip(client.batches[group[0]], client.batches[other], strict=True):
+                assert np.array_equal(v0, v1) and np.array_equal(l0, l1)
+    # The realised rates count every occupied voxel sent once per episode (free voxels read "free").
+    occupied = 0
+    for session in (sessions[0], sessions[len(methods)]):
+        free_id = next(int(k) for k, name in client.created[session]["label_map"].items() if name == "free")
+        occupied += sum(int(np.count_nonzero(labels != free_id)) for _, labels in client.batches[session])
+    assert result.rates.summary()["voxels"] == occupied
+
+
 def test_missing_grounders_and_proposers_are_named(service_url: str) -> None:
     with VLMapClient(service_url) as client:
         assert available_models(client, "grounder") == ["geometric", "fixed"]  # as the fixture configured
@@ -325,6 +435,11 @@ def test_sim_command_end_to_end(service_url: str, tmp_path: Path, capsys: pytest
 
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["methods"] == ["vision-only", "geometric", "fixed"]
+    assert doc["config"]["perception"] == "realistic"
+    told = PerceptionConfig().sensor_model
+    assert doc["config"]["sensor_model"] == {"tp": pytest.approx(told[0]), "fp": pytest.approx(told[1])}
+    assert doc["language"] == {"templated": {"cases": 1, "scannet": 1}}
+    assert 0 < doc["perception_realised"]["fp"] < doc["perception_realised"]["precision"] <= 1
     assert doc["episodes"]["run"] == 2
     assert doc["episodes"]["observed"] + doc["episodes"]["unobserved"] == 2
     assert doc["config"]["checkpoint_steps"] == list(range(9))
@@ -346,6 +461,7 @@ def test_sim_command_end_to_end(service_url: str, tmp_path: Path, capsys: pytest
 
     table = (out / "table.md").read_text()
     assert "Target observed by vision" in table and "Target never directly observed" in table
+    assert "Setting: realistic perception" in table and "Language: templated 2 (cases 1, scannet 1)" in table
     assert "Fixed (anchor centroid, 0.1 m)" in table
     for name in ("information_gain.png", "target_mass.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -23,7 +23,7 @@ belief's vision update lowers the target's mass there).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -191,12 +191,18 @@ def cast_rays(
 
 @dataclass(frozen=True)
 class Observation:
-    """The voxels one camera frame observed, each once, sorted by flat index, with their true contents."""
+    """The voxels one camera frame observed, each once, sorted by flat index, with their true contents, and
+    per ray what it stopped on (a segmenter's view of the same frame: which object each pixel shows)."""
 
     pose: Pose
     flat_idx: np.ndarray  # (M,) int64 flat voxel indices of the world's grid
     owner: np.ndarray  # (M,) int32 object index in the world, FREE for free voxels
     labels: np.ndarray  # (M,) str true labels ("free" for free voxels)
+    # (R,) int32 object index of each ray's hit, FREE for a ray that hit nothing within range; empty when
+    # the observation was made without rays.
+    ray_owner: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int32))
+    # (R,) metres to each ray's hit, inf for none.
+    ray_distance: np.ndarray = field(default_factory=lambda: np.empty(0))
 
     @property
     def hit_mask(self) -> np.ndarray:
@@ -232,5 +238,14 @@ class Camera:
         if self.config.observe_free:
             seen[np.where(result.free_mask, result.voxels, n_voxels)] = True
         flat_idx = np.flatnonzero(seen[:n_voxels])
-        owner = world.owner.reshape(-1)[flat_idx]
-        return Observation(pose=pose, flat_idx=flat_idx, owner=owner, labels=world.labels_of(owner))
+        owners = world.owner.reshape(-1)
+        owner = owners[flat_idx]
+        ray_owner = np.where(result.hit_flat >= 0, owners[np.maximum(result.hit_flat, 0)], FREE)
+        return Observation(
+            pose=pose,
+            flat_idx=flat_idx,
+            owner=owner,
+            labels=world.labels_of(owner),
+            ray_owner=ray_owner.astype(np.int32),
+            ray_distance=result.hit_t,
+        )

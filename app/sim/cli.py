@@ -1,10 +1,13 @@
 """`vlmap sim`: closed-loop evaluation of language sensors by a simulated robot driving the HTTP API.
 
-    vlmap sim --scenes data/cases/val_unseen.jsonl --source scannet --episodes 50 --steps 100 \\
-        --methods vision-only,lsm,geometric,fixed --out runs/sim --seed 0
+    vlmap sim --scenes ../shared/data/dev/cases_nr3d_dev.jsonl ../shared/data/dev/cases_scanrefer_dev.jsonl \\
+        --episodes 50 --steps 100 --methods vision-only,lsm,geometric,fixed --out runs/sim --seed 0
 
 Without --url it starts `vlmap serve` itself on a free loopback port (a temporary session directory, the
-service's default grounder settings, no rate limit) and stops it afterwards.
+service's default grounder settings, no rate limit) and stops it afterwards. `--perception realistic` (the
+default) labels the frames with `app.sim.perception`'s segmenter, `--perception ideal` with the independent
+per-voxel noise of the earlier tables. `--measure-rates` computes the frames only (no service) and prints the
+rates their labels realised.
 """
 
 from __future__ import annotations
@@ -18,9 +21,15 @@ import tempfile
 from collections.abc import Sequence
 from contextlib import ExitStack
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from app.sim.metrics import SUCCESS_MASS
+from app.sim.perception import PERCEPTION_MODELS, PerceptionConfig
 from app.sim.runner import DEFAULT_METHODS, METHOD_OPTIONS
+
+if TYPE_CHECKING:
+    from app.sim.runner import SimConfig
+    from app.sim.scenes import Episode
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -34,9 +43,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--scenes",
         type=Path,
+        nargs="+",
+        action="extend",
         required=True,
-        help="grounding-case JSONL (vlmap data build), a raw ScanNet/AI2-THOR layout JSONL (vision-only), "
-        "or a VLA-3D folder (vision-only)",
+        help="one or more of: grounding-case JSONL (vlmap data build, vlmap data referring, the dev set's "
+        "cases), a raw ScanNet/AI2-THOR layout JSONL (vision-only), a VLA-3D folder (vision-only); "
+        "their episodes are pooled, then drawn in a seeded order",
     )
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--episodes", type=int, default=50, help="episodes to run (skipped ones not counted)")
@@ -54,9 +66,75 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--voxel-size", type=float, default=0.1, help="metres")
     parser.add_argument("--margin", type=float, default=0.5, help="grid margin around the scene (metres)")
-    parser.add_argument("--tp", type=float, default=0.9, help="segmenter true-positive rate for the target")
-    parser.add_argument("--fp", type=float, default=0.05, help="segmenter false-positive rate")
-    parser.add_argument("--confusion", type=float, default=0.05, help="rate of other-class confusions")
+    parser.add_argument(
+        "--perception",
+        choices=PERCEPTION_MODELS,
+        default="realistic",
+        help="realistic: per-object, per-frame segmenter errors, recall by apparent size, look-alike false "
+        "positives, a mis-specified sensor model (app/sim/perception.py); ideal: independent per-voxel flips "
+        "at exactly the told rates (the earlier tables)",
+    )
+    ideal = parser.add_argument_group("ideal perception")
+    ideal.add_argument("--tp", type=float, default=0.9, help="true-positive rate for the target (also told)")
+    ideal.add_argument("--fp", type=float, default=0.05, help="false-positive rate (also told)")
+    ideal.add_argument("--confusion", type=float, default=0.05, help="rate of other-class confusions")
+    default = PerceptionConfig()
+    real = parser.add_argument_group(
+        "realistic perception (defaults and their sources: app/sim/perception.py)"
+    )
+    real.add_argument(
+        "--image-width", type=int, default=default.image_width_px, help="pixels across the image"
+    )
+    real.add_argument("--max-recall", type=float, default=default.max_recall, help="recall of large objects")
+    real.add_argument(
+        "--half-recall-area",
+        type=float,
+        default=default.half_recall_area_px,
+        help="apparent area (pixels) at which recall is half the maximum",
+    )
+    real.add_argument("--recall-slope", type=float, default=default.recall_slope, help="exponent of the area")
+    real.add_argument(
+        "--accuracy", type=float, default=default.accuracy, help="P(right class | detected), target's class"
+    )
+    real.add_argument(
+        "--lookalike-share",
+        type=float,
+        default=default.lookalike_share,
+        help="share of an object's misclassifications that go to a full look-alike of the target",
+    )
+    real.add_argument(
+        "--shape-scale", type=float, default=default.shape_scale, help="look-alike scale, log box extents"
+    )
+    real.add_argument(
+        "--frame-correlation",
+        type=float,
+        default=default.frame_correlation,
+        help="correlation of one object's labels across frames (0: independent frames)",
+    )
+    real.add_argument(
+        "--speckle", type=float, default=default.speckle, help="scattered false-positive rate per voxel"
+    )
+    real.add_argument(
+        "--misspecification",
+        type=float,
+        default=default.misspecification,
+        help="the service is told error rates this many times smaller than the true ones (1: told the truth)",
+    )
+    real.add_argument(
+        "--true-rates",
+        type=float,
+        nargs=2,
+        metavar=("TP", "FP"),
+        default=default.true_rates,
+        help="the segmenter's true voxel rates that --misspecification applies to (default: measured on "
+        "training rooms, CALIBRATED_RATES)",
+    )
+    parser.add_argument(
+        "--measure-rates",
+        action="store_true",
+        help="compute the episodes' frames only (no service, no methods) and print the rates their labels "
+        "realised",
+    )
     parser.add_argument("--fov", type=float, default=90.0, help="horizontal field of view (degrees)")
     parser.add_argument("--vfov", type=float, default=60.0, help="vertical field of view (degrees)")
     parser.add_argument("--range", type=float, default=3.5, dest="max_range", help="camera range (metres)")
@@ -96,18 +174,35 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             voxel_size=args.voxel_size,
             margin=args.margin,
+            perception=args.perception,
             noise=LabelNoise(tp=args.tp, fp=args.fp, confusion=args.confusion),
+            segmenter=PerceptionConfig(
+                image_width_px=args.image_width,
+                max_recall=args.max_recall,
+                half_recall_area_px=args.half_recall_area,
+                recall_slope=args.recall_slope,
+                accuracy=args.accuracy,
+                lookalike_share=args.lookalike_share,
+                shape_scale=args.shape_scale,
+                frame_correlation=args.frame_correlation,
+                speckle=args.speckle,
+                misspecification=args.misspecification,
+                true_rates=(args.true_rates[0], args.true_rates[1]),
+            ),
             camera=CameraConfig(hfov_deg=args.fov, vfov_deg=args.vfov, max_range=args.max_range),
             min_free_floor_m2=args.min_free_floor,
             n_checkpoints=args.checkpoints,
         )
         episodes = load_episodes(args.scenes, args.source, args.seed)
+        scenes = " ".join(str(p) for p in args.scenes)
         if not episodes:
-            msg = f"{args.scenes} holds no episode" + (f" of source {args.source!r}" if args.source else "")
+            msg = f"{scenes} holds no episode" + (f" of source {args.source!r}" if args.source else "")
             raise SimError(msg)
+        if args.measure_rates:
+            return measure_rates(episodes, args.episodes, config, args.out)
         if needs_utterance(methods) and not any(e.utterance for e in episodes):
             msg = (
-                f"{args.scenes} carries no utterances, which {[m for m in methods if METHOD_OPTIONS[m]]} "
+                f"{scenes} carries no utterances, which {[m for m in methods if METHOD_OPTIONS[m]]} "
                 "need: pass grounding cases built from these scenes (vlmap data build), "
                 "or --methods vision-only"
             )
@@ -140,6 +235,35 @@ def run(args: argparse.Namespace) -> int:
     except (SimError, InvalidInput) as exc:
         print(f"vlmap sim: {exc}", file=sys.stderr)
         return 2
+
+
+def measure_rates(episodes: Sequence[Episode], n_episodes: int, config: SimConfig, out: Path) -> int:
+    """`--measure-rates`: the rates the labels of `n_episodes` fit episodes' frames realise (no service);
+    printed and written to out/perception_rates.json."""
+    from collections import Counter
+
+    from app.sim.perception import RateCounts
+    from app.sim.runner import prepared_episodes
+
+    skips: Counter[str] = Counter()
+    rates, seen, run = RateCounts(), 0, 0
+    for prepared in prepared_episodes(episodes, config, skips):
+        rates.add(prepared.rates)
+        seen += prepared.target_seen
+        run += 1
+        if run >= n_episodes:
+            break
+    document = {
+        "perception": config.perception,
+        "episodes": run,
+        "target_observed": seen,
+        "skipped": dict(sorted(skips.items())),
+        "realised": rates.summary(),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "perception_rates.json").write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
+    print(json.dumps(document, indent=2))
+    return 0
 
 
 def service_env(methods: Sequence[str]) -> dict[str, str]:

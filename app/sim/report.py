@@ -1,12 +1,17 @@
 """What a closed-loop run writes: metrics.json, a Markdown table in the layout of the reference's Table 2,
 per-episode records (episodes.jsonl) and PNG plots of information gain and target mass against normalised
 trajectory progress (one line per method, shaded +- one standard error, one panel per split).
+
+The table and metrics.json say which setting the run had: the perception model (realistic or ideal, the
+sensor model the service was told, and the rates the frames' labels realised) and the language (how many
+episodes had human utterances and how many templated ones, per source).
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -49,6 +54,7 @@ def metrics_document(
     aggregates of `app.sim.metrics` (curves included)."""
     config = result.config
     n_seen = sum(r.target_seen for r in result.records)
+    told = config.sensor_model
     return _clean(
         {
             "command": command,
@@ -57,7 +63,12 @@ def metrics_document(
                 "seed": config.seed,
                 "voxel_size_m": config.voxel_size,
                 "margin_m": config.margin,
-                "noise": asdict(config.noise),
+                "perception": config.perception,
+                "noise": asdict(
+                    config.noise
+                ),  # the ideal model's parameters (used when perception is "ideal")
+                "segmenter": asdict(config.segmenter) if config.perception == "realistic" else None,
+                "sensor_model": {"tp": told[0], "fp": told[1]},
                 "camera": asdict(config.camera),
                 "policy": asdict(config.policy),
                 "min_free_floor_m2": config.min_free_floor_m2,
@@ -67,6 +78,8 @@ def metrics_document(
                 "argmax_distance": "MAP voxel centre to the target's axis-aligned box (0 inside)",
             },
             "methods": list(result.methods),
+            "language": language_counts(result),
+            "perception_realised": result.rates.summary(),
             "episodes": {
                 "run": len(result.records),
                 "observed": n_seen,
@@ -85,6 +98,39 @@ def metrics_document(
             },
         }
     )
+
+
+def language_counts(result: SimResult) -> dict[str, dict[str, int]]:
+    """Episodes per language ("human", "templated", "none") and per source of each language."""
+    counts: dict[str, Counter[str]] = {}
+    for record in result.records:
+        counts.setdefault(record.language or "none", Counter())[record.source] += 1
+    return {language: dict(sorted(by_source.items())) for language, by_source in sorted(counts.items())}
+
+
+def setting_line(document: dict[str, Any]) -> str:
+    """One sentence naming the run's perception model and language, for the table page."""
+    config, realised = document["config"], document["perception_realised"]
+    told = config["sensor_model"]
+    if config["perception"] == "realistic":
+        perception = (
+            "realistic perception (`app/sim/perception.py`: per-object, per-frame labels, recall by apparent "
+            f"size, look-alike false positives; the service told tp {told['tp']:.3f}, fp {told['fp']:.4f})"
+        )
+    else:
+        perception = (
+            f"idealised perception (independent per-voxel flips at the told tp {told['tp']}, fp {told['fp']})"
+        )
+    if realised.get("tp") is not None and realised.get("fp") is not None:
+        perception += (
+            f"; the labels realised tp {realised['tp']:.3f}, fp {realised['fp']:.4f}, target-class precision "
+            f"{realised['precision']:.2f}, IoU {realised['iou']:.2f}"
+        )
+    parts = []
+    for language, by_source in document["language"].items():
+        sources = ", ".join(f"{source} {n}" for source, n in by_source.items())
+        parts.append(f"{language} {sum(by_source.values())} ({sources})")
+    return f"Setting: {perception}. Language: {'; '.join(parts) or 'none'}."
 
 
 def _grounded_pct(result: SimResult, method: str) -> float | None:
@@ -189,6 +235,7 @@ def _table_page(table: str, document: dict[str, Any]) -> str:
     lines = [
         table,
         f"{episodes['run']} episodes of {config['steps']} steps (seed {config['seed']}); skipped: {skipped}.",
+        setting_line(document),
         f"Mean IG and mass at the last step, +- standard error; success: terminal target mass >= "
         f"{config['success_mass']}; miss: below the uniform prior's. Definitions: `app/sim/metrics.py`.",
     ]

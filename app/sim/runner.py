@@ -1,16 +1,18 @@
 """Closed-loop episodes against a running VL-Map service: one simulated robot, one session per method.
 
 Identical episodes. For each episode the runner computes ONE seeded trajectory (`app.sim.policy`) and ONE
-seeded stream of noisy camera frames (`Camera` + `LabelNoise`) before any request is made, and sends exactly
-these frames to one session per method, so methods differ only in the utterance's language likelihood. The
-random streams of an episode are seeded by (seed, crc32(episode id)): an episode's frames do not depend on
-which other episodes run, nor in which order.
+seeded stream of labelled camera frames (`Camera`, then the perception model: `Segmenter` for "realistic",
+the default, or `LabelNoise` for "ideal") before any request is made, and sends exactly these frames to one
+session per method, so methods differ only in the utterance's language likelihood. The random streams of an
+episode are seeded by (seed, crc32(episode id)): an episode's frames do not depend on which other episodes
+run, nor in which order, nor on the methods compared.
 
 Per episode and method (`run_method`):
 
 1. POST /v1/sessions: the episode's scene graph without the target, the grid (voxel size and margin; the
    session's grid must equal `Episode.service_grid`, else the run stops), the target class, the sensor model
-   (tp, fp of the label noise) and a label map (the world's classes, "free" and "unknown");
+   (`SimConfig.sensor_model`: the ideal noise's own (tp, fp), or the realistic segmenter's true rates
+   mis-specified by its factor) and a label map (the world's classes, "free" and "unknown");
 2. language methods: POST .../utterances with the method's options (`METHOD_OPTIONS`: the grounder, and
    for scaffolded-llm the LLM proposer); vision-only sends no utterance;
 3. one msgpack observation batch per frame: the observed voxels' (i, j, k) and their noisy label ids, free
@@ -47,9 +49,11 @@ from app.errors import LimitExceeded
 from app.sim.camera import Camera, CameraConfig
 from app.sim.metrics import EpisodeOutcome, box_distance, target_mass
 from app.sim.noise import UNKNOWN_LABEL, LabelNoise
+from app.sim.perception import PERCEPTION_MODELS, PerceptionConfig, RateCounts, Segmenter
 from app.sim.policy import PolicyConfig, trajectory
 from app.sim.scenes import Episode
-from app.sim.world import FREE_LABEL
+from app.sim.world import FREE, FREE_LABEL
+from app.vocabulary import class_key
 
 log = logging.getLogger("vlmap.sim")
 
@@ -105,8 +109,11 @@ def needed_parts(methods: Sequence[str]) -> tuple[set[str], set[str]]:
     return grounders, {o["proposer"] for o in options if "proposer" in o}
 
 
-def load_episodes(path: str | Path, source: str | None = None, seed: int = 0) -> list[Episode]:
-    """Every episode a scenes path holds, in a seeded random order; only those of `source` when given.
+def load_episodes(
+    path: str | Path | Sequence[str | Path], source: str | None = None, seed: int = 0
+) -> list[Episode]:
+    """Every episode a scenes path (or several, read in the order given) holds, in a seeded random order;
+    only those of `source` when given.
 
     - a folder: VLA-3D scenes (one episode per target candidate, no utterance);
     - a JSONL file of grounding cases (`app.data.cases`; lines with "case_id" and "utterance"): one episode
@@ -114,9 +121,20 @@ def load_episodes(path: str | Path, source: str | None = None, seed: int = 0) ->
     - another JSONL file: raw ScanNet or AI2-THOR layouts (one episode per target candidate, no utterance).
       Language methods need utterances: build grounding cases from the layouts (`vlmap data build`).
     """
+    if not isinstance(path, str | Path):
+        episodes = [e for p in path for e in load_episodes(p)]  # each file in its own order, then shuffled
+    else:
+        episodes = _episodes_of(Path(path))
+    if source is not None:
+        episodes = [e for e in episodes if e.source == source]
+    order = np.random.default_rng(seed).permutation(len(episodes))
+    return [episodes[k] for k in order]
+
+
+def _episodes_of(path: Path) -> list[Episode]:
+    """The episodes of one scenes path, in file order (`load_episodes`)."""
     from app.sim.scenes import episodes_from_cases, load_layout_scenes, load_vla3d_scenes
 
-    path = Path(path)
     if path.is_dir():
         episodes = [s.episode(t) for s in load_vla3d_scenes(path) for t in s.candidate_target_ids]
     else:
@@ -130,21 +148,25 @@ def load_episodes(path: str | Path, source: str | None = None, seed: int = 0) ->
             episodes = list(episodes_from_cases(path))
         else:
             episodes = [s.episode(t) for s in load_layout_scenes(path) for t in s.candidate_target_ids]
-    if source is not None:
-        episodes = [e for e in episodes if e.source == source]
-    order = np.random.default_rng(seed).permutation(len(episodes))
-    return [episodes[k] for k in order]
+    return episodes
 
 
 @dataclass(frozen=True)
 class SimConfig:
-    """Everything that shapes an episode's frames and the checkpoints, shared by all methods."""
+    """Everything that shapes an episode's frames and the checkpoints, shared by all methods.
+
+    `perception` picks the model that labels the frames: "realistic" (`app.sim.perception`, parameters in
+    `segmenter`) or "ideal" (`noise`: independent per-voxel flips at exactly the rates the service is told,
+    the model of the earlier tables, which it reproduces draw for draw).
+    """
 
     n_steps: int = 100
     seed: int = 0
     voxel_size: float = DEFAULT_VOXEL_SIZE_M
     margin: float = DEFAULT_MARGIN_M
+    perception: str = "realistic"
     noise: LabelNoise = field(default_factory=LabelNoise)
+    segmenter: PerceptionConfig = field(default_factory=PerceptionConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     min_free_floor_m2: float = 2.0
@@ -154,6 +176,17 @@ class SimConfig:
         if self.n_steps < 1 or self.n_checkpoints < 1:
             msg = f"need n_steps >= 1 and n_checkpoints >= 1, got {self.n_steps} and {self.n_checkpoints}"
             raise SimError(msg)
+        if self.perception not in PERCEPTION_MODELS:
+            msg = f"unknown perception model {self.perception!r}; choose from {list(PERCEPTION_MODELS)}"
+            raise SimError(msg)
+
+    @property
+    def sensor_model(self) -> tuple[float, float]:
+        """(tp, fp) the service's sessions are told: the ideal noise's own rates, or the realistic
+        segmenter's true rates mis-specified by its factor (`PerceptionConfig.sensor_model`)."""
+        if self.perception == "ideal":
+            return self.noise.tp, self.noise.fp
+        return self.segmenter.sensor_model
 
     @property
     def checkpoints(self) -> tuple[int, ...]:
@@ -182,6 +215,7 @@ class PreparedEpisode:
     frames: tuple[Frame, ...]
     free_floor_m2: float
     seconds: dict[str, float]  # world, camera (ray casts), noise
+    rates: RateCounts = field(default_factory=RateCounts)  # what the labels of the frames realised
 
     @property
     def target_seen(self) -> bool:
@@ -224,15 +258,43 @@ def prepare_episode(
     camera = camera or Camera(config.camera)
     is_target_voxel = np.zeros(grid.n_voxels, dtype=bool)
     is_target_voxel[target_flat] = True
+    target_key = class_key(episode.target.label)
+    object_is_target_class = np.array([class_key(label) == target_key for label in world.labels], dtype=bool)
+    id_is_target_class = np.array([class_key(name) == target_key for name in names], dtype=bool)
+    segmenter = None
+    if config.perception == "realistic":
+        # Drawn first from the noise stream: the objects' propensities, fixed for the episode.
+        segmenter = Segmenter(
+            config.segmenter,
+            world,
+            episode.target.label,
+            np.asarray(episode.target.size),
+            config.camera,
+            noise_rng,
+        )
+        # The segmenter's label codes -> the label map's ids.
+        id_of_code = np.array([id_of[str(n)] for n in segmenter.names], dtype=np.uint32)
+    rates = RateCounts()
     seconds = {"world": time.perf_counter() - started, "camera": 0.0, "noise": 0.0}
     frames = []
     for pose in poses:
         t0 = time.perf_counter()
         seen = camera.observe(world, pose)
         t1 = time.perf_counter()
-        noisy = config.noise.corrupt(seen.labels, episode.target.label, noise_rng, vocabulary=world.labels)
-        uniq, inverse = np.unique(noisy, return_inverse=True)
-        label_ids = np.array([id_of[str(u)] for u in uniq], dtype=np.uint32)[inverse]
+        if segmenter is None:
+            noisy = config.noise.corrupt(
+                seen.labels, episode.target.label, noise_rng, vocabulary=world.labels
+            )
+            uniq, inverse = np.unique(noisy, return_inverse=True)
+            label_ids = np.array([id_of[str(u)] for u in uniq], dtype=np.uint32)[inverse]
+        else:
+            label_ids = id_of_code[segmenter.label_codes(seen, noise_rng)]
+        occupied = seen.owner != FREE
+        rates.count(
+            object_is_target_class[seen.owner[occupied]],
+            id_is_target_class[label_ids[occupied]],
+            is_target_voxel[seen.flat_idx[occupied]],
+        )
         voxels = np.stack(np.unravel_index(seen.flat_idx, grid.shape), axis=1).astype(np.int32)
         frames.append(Frame(voxels, label_ids, bool(is_target_voxel[seen.flat_idx].any())))
         seconds["camera"] += t1 - t0
@@ -245,6 +307,7 @@ def prepare_episode(
         frames=tuple(frames),
         free_floor_m2=free_floor,
         seconds=seconds,
+        rates=rates,
     )
 
 
@@ -314,7 +377,7 @@ def run_method(
         episode.service_graph.model_dump(mode="json"),
         grid={"voxel_size": config.voxel_size, "margin": config.margin},
         target_label=target.label,
-        sensor_model={"tp": config.noise.tp, "fp": config.noise.fp},
+        sensor_model=dict(zip(("tp", "fp"), config.sensor_model, strict=True)),
         label_map={str(k): name for k, name in prepared.label_map.items()},
     )
     session_id = session["id"]
@@ -405,6 +468,7 @@ class EpisodeRecord:
     scene_id: str
     source: str
     utterance: str | None
+    language: str | None  # "human", "templated", None without an utterance
     target_label: str
     n_target_voxels: int
     n_voxels: int
@@ -419,6 +483,7 @@ class EpisodeRecord:
             "scene_id": self.scene_id,
             "source": self.source,
             "utterance": self.utterance,
+            "language": self.language,
             "target_label": self.target_label,
             "n_target_voxels": self.n_target_voxels,
             "n_voxels": self.n_voxels,
@@ -440,15 +505,17 @@ class EpisodeRecord:
 
 @dataclass
 class SimResult:
-    """A whole run: per-episode records, skip counts and where the time went (seconds): world, camera and
-    noise (frames, computed in the background thread), frames_wait (the main thread waiting for them),
-    http_observations, http_grid_reads, http_setup (create, utterance, delete) and wall."""
+    """A whole run: per-episode records, skip counts, the rates its frames' labels realised, and where the
+    time went (seconds): world, camera and noise (frames, computed in the background thread), frames_wait
+    (the main thread waiting for them), http_observations, http_grid_reads, http_setup (create, utterance,
+    delete) and wall."""
 
     methods: tuple[str, ...]
     config: SimConfig
     records: list[EpisodeRecord] = field(default_factory=list)
     skips: Counter[str] = field(default_factory=Counter)
     seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
+    rates: RateCounts = field(default_factory=RateCounts)
 
     @property
     def outcomes(self) -> list[EpisodeOutcome]:
@@ -491,6 +558,7 @@ def run_simulation(
                 upcoming = pool.submit(next, stream, None) if wanted_more else None
                 for kind, seconds in prepared.seconds.items():
                     result.seconds[kind] += seconds
+                result.rates.add(prepared.rates)
                 result.records.append(_run_episode(client, prepared, methods, config, result, bar))
         finally:
             if upcoming is not None:
@@ -515,6 +583,7 @@ def _run_episode(
         scene_id=episode.scene_id,
         source=episode.source,
         utterance=episode.utterance,
+        language=episode.language,
         target_label=episode.target.label,
         n_target_voxels=len(prepared.target_flat),
         n_voxels=prepared.grid.n_voxels,

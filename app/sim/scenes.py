@@ -28,6 +28,10 @@ from app.sim.world import RobotBody, SemanticVoxelWorld
 
 #: Box of a case target whose size the case does not give (metres).
 DEFAULT_TARGET_SIZE = (0.2, 0.2, 0.2)
+#: Case sources whose utterances people wrote (Nr3D, ScanRefer); every other source's are templates (Sr3D's,
+#: the case builder's, VLA-3D's). A case's `meta["language"]` ("human" or "templated") overrides this.
+HUMAN_SOURCES = frozenset({"nr3d", "scanrefer"})
+LANGUAGES = ("human", "templated")
 
 
 @dataclass(frozen=True)
@@ -52,6 +56,16 @@ class Episode:
         """The grid a belief session opened with `service_graph` and these settings lives on."""
         graph = self.service_graph
         return VoxelGrid.around(graph, voxel_size=voxel_size, margin=margin, max_voxels=max_voxels)
+
+    @property
+    def language(self) -> str | None:
+        """Who wrote the utterance: "human" or "templated" (`HUMAN_SOURCES`), None without one."""
+        if not self.utterance:
+            return None
+        given = self.meta.get("language")
+        if given in LANGUAGES:
+            return str(given)
+        return "human" if self.source in HUMAN_SOURCES else "templated"
 
     def world(
         self, grid: VoxelGrid | None = None, *, robot: RobotBody | None = None, floor_z: float | None = None
