@@ -116,7 +116,7 @@ def build_store(settings: Settings) -> SessionStore:
 
 def freeze_startup_objects() -> None:
     """Exempt what start-up built (torch, transformers, the models: about 400k objects) from the cyclic
-    garbage collector: a full collection scanning them took 240 ms, a pause for every request in flight,
-    and requests' own garbage triggers one every few seconds under load."""
+    garbage collector: a full collection scanning them takes hundreds of milliseconds, a pause for every
+    request in flight, and requests' own garbage triggers one every few seconds under load."""
     gc.collect()
     gc.freeze()

@@ -23,7 +23,7 @@ from app.stores.base import Change, Delta, LanguageDelta, MetaDelta, SessionView
 
 #: Observation batches up to this many voxels (a camera view) are cheap enough to compute on the event
 #: loop when the store holds the session in memory: the thread switches an update would take cost more
-#: than its few milliseconds of numpy on a busy 2-vCPU host (README, Performance).
+#: than its few milliseconds of numpy on a busy 2-vCPU host (docs/performance.md).
 INLINE_BATCH_VOXELS = 16_384
 
 

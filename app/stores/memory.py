@@ -1,8 +1,9 @@
 """Sessions in process memory, optionally made durable by a write-ahead log and per-session snapshots.
 
-Durability (when `data_dir` is given). Every update is first appended to an append-only log as the
-*operation* (the utterance's mixture parameters; the observation batch's voxel indices and increments;
-the new scene graph; the new target label), each record framed as [u32 length][u32 crc32][msgpack
+Durability (when `data_dir` is given). Every update is first appended to an append-only log as its
+*delta* (`app.stores.base.Delta`: the utterance's mixture parameters, from which replay recomputes its
+term; the batch's voxel indices and increments; the new scene graph; the new target label), each record
+framed as [u32 length][u32 crc32][msgpack
 payload] and stamped with a log sequence number (LSN); the file is fsync'd before the update is applied in
 memory and acknowledged. So a `kill -9` at any moment loses nothing that was acknowledged: a crash
 mid-append leaves a torn last record, which the next start recognises (short header, short payload or bad
@@ -22,7 +23,8 @@ holds them, and each compaction logs the tombstones still in their window again.
 
 Locking: a lock per session serialises its updates (log append + apply happen under it, so the log order
 is the apply order); a registry lock guards the id -> session map; the log has its own lock. Lock order:
-session, then registry, then log.
+session, then registry, then log. What may wait on a lock or the disk runs on a worker thread; an inline
+change of a store without a log runs on the caller's event loop when its session's lock is free.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ Keys of session S (the hash tag {S} keeps them in one cluster slot):
                           creation time; only the target ever changes), sg (scene graph JSON), version,
                           updated_at, look_alikes (int64 flat indices of the mapped objects of the
                           target's class, `mapped_look_alikes`, rewritten with sg or the target),
-                          block_voxels (the layers' block size); `info` and `list` read this hash alone
+                          block_voxels (the layers' block size); `head` and `list` read this hash alone
     <prefix>:s:{S}:lang   hash: block number -> float32 bytes of the session's `block_voxels` voxels (the meta
                           hash's field, fixed at creation; absent blocks are zeros)
     <prefix>:s:{S}:vis    hash: the same for the vision layer
@@ -24,24 +24,24 @@ Redis Cluster: the store speaks to a cluster when the URL's server is one (`INFO
 redis-py's cluster clients, unchanged otherwise. Every script touches only keys of one session (one hash
 tag, so one slot) or one index; an index is written apart from the session, after it.
 
-No lost updates across replicas: an update reads what it needs (the meta hash and the blocks it will
-change) in one transaction, computes, and commits with one script call (`COMMIT_SCRIPT`) that writes only
+No lost updates across replicas: an update reads the meta hash, computes the change's delta from it,
+reads the blocks the delta changes, and commits with one script call (`COMMIT_SCRIPT`) that writes only
 if the session is still at the version it read and no other writer holds the session's lock; else it
-reads again. Every update is then one read and one write round trip, and one fsync on an `appendfsync
-always` Redis (a lock taken and released around each update had cost two more writes, each fsynced). A
+reads again. Every update is then two reads and one write round trip (none but the write from the
+mirror), and one fsync on an `appendfsync always` Redis (a lock taken and released around each update would cost two more writes, each fsynced). A
 writer that keeps losing (a slow utterance among fast observation streams) takes the session's lock (SET
 NX PX with a random token), which makes every other writer's commit fail until it is done. An observation
 batch reads and writes only the vision blocks its voxels fall in.
 
 The mirror: each store keeps in memory the last state of each session it read in full or committed
-(`_Mirror`), named by its (version, updated_at). A replica that a robot's connection stays with then
+(`app.stores.redis_mirror`), named by its (version, updated_at). A replica that a robot's connection stays with then
 updates without the read (it computes from the mirror and commits on the condition that the stored state
 still has that name; when another replica wrote meanwhile, the commit fails and the update reads), and
 summarises a version it wrote without reading the whole belief back. The mirror is never needed to be
 right: the commit's condition is checked in Redis, and a state is taken from it only under its name.
-An observation batch's update from the mirror also runs on the caller's event loop
-(`apply_observations_async`), committed through that loop's `redis.asyncio` client: it needs no read, so
-no worker thread; an update that must read runs on one.
+An inline change (`Change.inline`: a camera view's batch) from the mirror is computed on the caller's
+event loop and committed through that loop's `redis.asyncio` client: it needs no read, so no worker
+thread; an update that must read runs on one.
 
 Expiry: every write sets the same absolute expiry (PEXPIREAT now + ttl) on all of the session's keys;
 Redis drops the keys. The index scores follow when they lag by more than a tenth of the ttl (each
@@ -123,7 +123,7 @@ from app.stores.redis_scripts import (
 )
 
 #: Voxels per stored block of a new session: 4 kB of float32. A camera's 10k-voxel batch in a 163k-voxel room
-#: touches 160 kB of 1024-voxel blocks, against 550 kB of the 65,536-voxel blocks first used: each update
+#: touches 160 kB of 1024-voxel blocks, against 550 kB of 65,536-voxel blocks: each update
 #: reads, rewrites and (on an `appendfsync always` Redis) fsyncs that much.
 DEFAULT_BLOCK_VOXELS = 1 << 10
 #: The block size of sessions stored before the meta hash recorded one.
@@ -186,7 +186,7 @@ async def _off_loop(func: Callable[[], R]) -> R:
 @functools.lru_cache(maxsize=64)
 def parse_scene_graph_json(raw: bytes) -> SceneGraph:
     """A stored scene graph, parsed once per distinct JSON: every summary and utterance reads the session's
-    scene graph, and parsing a 60-object one took 1.7 ms, half of reading the session. Callers share the
+    scene graph, and parsing a 60-object one costs about as much as reading the session. Callers share the
     object and never change it (a replacement is a new scene graph)."""
     return SceneGraph.model_validate_json(raw)
 
