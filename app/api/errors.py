@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextvars
 import logging
 import math
 from collections.abc import Sequence
@@ -14,7 +15,6 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import compile_path
 
-from app.api.observability import request_id_var
 from app.errors import (
     Conflict,
     Forbidden,
@@ -27,6 +27,9 @@ from app.errors import (
     UnsupportedMediaType,
     VLMapError,
 )
+
+#: The id of the request being answered (set by `app.api.observability.RequestContextMiddleware`).
+request_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar("request_id", default=None)
 
 log = logging.getLogger("vlmap.api")
 

@@ -6,7 +6,6 @@ bounded cardinality only (route templates, never raw paths or ids).
 
 from __future__ import annotations
 
-import contextvars
 import json
 import logging
 import sys
@@ -18,7 +17,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-request_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar("request_id", default=None)
+from app.api.errors import error_body, request_id_var
 
 #: The status recorded (never sent) for a request whose client hung up before its answer: nginx's 499.
 CLIENT_CLOSED_REQUEST = 499
@@ -175,8 +174,6 @@ class RequestContextMiddleware:
     @staticmethod
     async def _internal_error(send: Send) -> None:
         from starlette.responses import JSONResponse
-
-        from app.api.errors import error_body  # app.api.errors imports this module for the request id
 
         response = JSONResponse(error_body("internal_error", "internal error"), status_code=500)
         await send({"type": "http.response.start", "status": 500, "headers": response.raw_headers})
