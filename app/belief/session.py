@@ -47,8 +47,6 @@ from app.vocabulary import class_key
 #: Default sensor model: placeholders for a decent semantic segmenter; set them from its confusion matrix.
 DEFAULT_TRUE_POSITIVE_RATE = 0.9
 DEFAULT_FALSE_POSITIVE_RATE = 0.05
-#: Voxels one observation batch may carry.
-DEFAULT_MAX_BATCH_VOXELS = 4_000_000
 #: Label maps whose largest id is below this are looked up in a dense table (one int8 per id: a lookup per
 #: voxel is the fastest there is); larger ids are found by binary search, so no id allocates memory.
 _DENSE_LABEL_IDS = 1 << 16
@@ -335,15 +333,16 @@ class ObservationModel:
         n: int,
         points: np.ndarray | None,
         flat_idx: np.ndarray | None,
-        max_voxels: int,
+        max_voxels: int | None,
         voxels: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """(indices inside the grid, mask of the n inputs kept) from one of points (n, 3), flat_idx (n,) or
-        voxels (n, 3) integer coordinates; points and voxels outside the grid are dropped."""
+        voxels (n, 3) integer coordinates; points and voxels outside the grid are dropped. `max_voxels`:
+        the most a batch may carry (the service's `max_batch_voxels`; None: no limit)."""
         if sum(x is not None for x in (points, flat_idx, voxels)) != 1:
             msg = "give exactly one of points, flat_idx or voxels"
             raise InvalidInput(msg, "points")
-        if n > max_voxels:
+        if max_voxels is not None and n > max_voxels:
             msg = f"a batch may carry at most {max_voxels} voxels, got {n}"
             raise LimitExceeded(msg, "max_batch_voxels")
         if voxels is not None:
@@ -386,7 +385,7 @@ class ObservationModel:
         voxels: np.ndarray | None = None,
         tp: float | None = None,
         fp: float | None = None,
-        max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
+        max_voxels: int | None = None,
     ) -> IncrementBatch:
         """Equation (4) for labelled voxels (points, flat indices or voxel coordinates); tp/fp override the
         default model.
@@ -412,7 +411,7 @@ class ObservationModel:
         flat_idx: np.ndarray | None = None,
         voxels: np.ndarray | None = None,
         prior: float = 0.5,
-        max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
+        max_voxels: int | None = None,
     ) -> IncrementBatch:
         """Equation (5) for voxels with detector probabilities p_target, computed under its `prior`."""
         p = np.asarray(p_target, dtype=np.float64).reshape(-1)
@@ -491,7 +490,7 @@ class Session:
         voxels: np.ndarray | None = None,
         tp: float | None = None,
         fp: float | None = None,
-        max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
+        max_voxels: int | None = None,
     ) -> IncrementBatch:
         """`ObservationModel.observation_batch` for this session."""
         return self.observer.observation_batch(
@@ -506,7 +505,7 @@ class Session:
         flat_idx: np.ndarray | None = None,
         voxels: np.ndarray | None = None,
         prior: float = 0.5,
-        max_voxels: int = DEFAULT_MAX_BATCH_VOXELS,
+        max_voxels: int | None = None,
     ) -> IncrementBatch:
         """`ObservationModel.detection_batch` for this session."""
         return self.observer.detection_batch(
