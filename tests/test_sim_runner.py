@@ -33,6 +33,7 @@ from app.sim.metrics import (
 from app.sim.noise import LabelNoise
 from app.sim.perception import PerceptionConfig
 from app.sim.policy import trajectory
+from app.sim.report import main as report_main
 from app.sim.report import render_table
 from app.sim.runner import (
     PreparedEpisode,
@@ -462,6 +463,11 @@ def test_sim_command_end_to_end(service_url: str, tmp_path: Path, capsys: pytest
     table = (out / "table.md").read_text()
     assert "Target observed by vision" in table and "Target never directly observed" in table
     assert "Setting: realistic perception" in table and "Language: templated 2 (cases 1, scannet 1)" in table
+    assert report_main([f"realistic templated={out}", f"again={out}"]) == 0
+    summary = capsys.readouterr().out.splitlines()
+    assert summary[0].startswith("| Setting | Method | Observed: n |") and len(summary) == 2 + 2 * 3
+    assert summary[2].startswith("| realistic templated | Vision-only | ")
+    assert summary[5].startswith("| again | Vision-only | ")
     assert "Fixed (anchor centroid, 0.1 m)" in table
     for name in ("information_gain.png", "target_mass.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

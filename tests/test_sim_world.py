@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -269,3 +270,14 @@ def test_vla3d_scenes() -> None:
     assert scene.candidate_target_ids
     episode = scene.episode(scene.candidate_target_ids[0])
     assert len(episode.world().object_voxels(episode.target.id)) > 0
+
+
+def test_episode_language_says_who_wrote_the_utterance() -> None:
+    sized, _ = list(episodes_from_cases(SIM / "cases_scene0000_00.jsonl"))
+    assert sized.language == "templated"  # the case builder's template (source scannet)
+    for source, language in (("nr3d", "human"), ("scanrefer", "human"), ("sr3d", "templated")):
+        assert replace(sized, source=source).language == language
+    assert replace(sized, meta={"language": "human"}).language == "human"
+    assert replace(sized, utterance=None).language is None
+    layout = load_layout_scenes(SIM / "scannet_scene0000_00.jsonl")[0]
+    assert layout.episode(layout.candidate_target_ids[0]).language is None

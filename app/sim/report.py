@@ -242,3 +242,46 @@ def _table_page(table: str, document: dict[str, Any]) -> str:
     if document.get("command"):
         lines.append(f"\nCommand: `{document['command']}`")
     return "\n".join(lines) + "\n"
+
+
+def render_summary(documents: dict[str, dict[str, Any]]) -> str:
+    """Markdown: several runs' metrics.json side by side (setting name -> document), a row per setting and
+    method, the observed and never-observed splits' n, mean IG +- SE, success % and miss %."""
+    lines = [
+        "| Setting | Method | Observed: n | IG (nats) | Success % | Miss % | Never observed: n | IG (nats) "
+        "| Success % | Miss % |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for name, document in documents.items():
+        for k, method in enumerate(document["methods"]):
+            cells = [name if k == 0 else "", METHOD_TITLES.get(method, method)]
+            for split in ("observed", "unobserved"):
+                m = document["metrics"][method][split]
+                cells += [
+                    str(m["n"]),
+                    _pm(m["mean_ig"], m["se_ig"], 2),
+                    _number(m["success_pct"], 1),
+                    _number(m["miss_pct"], 1),
+                ]
+            lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m app.sim.report NAME=DIR ...`: the summary table of several `vlmap sim` output folders."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("runs", nargs="+", help="NAME=DIR: a setting's name and its vlmap sim --out folder")
+    args = parser.parse_args(argv)
+    documents = {}
+    for run in args.runs:
+        name, _, folder = run.rpartition("=")
+        path = Path(folder) / "metrics.json"
+        documents[name or folder] = json.loads(path.read_text(encoding="utf-8"))
+    print(render_summary(documents), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
