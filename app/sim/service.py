@@ -13,6 +13,7 @@ import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import httpx
 
@@ -35,10 +36,36 @@ def start_service(env: dict[str, str] | None = None, port: int | None = None) ->
     return proc, f"http://127.0.0.1:{port}"
 
 
-def wait_ready(url: str, proc: subprocess.Popen | None = None, timeout_s: float = 60.0) -> None:
-    """Poll /readyz until it answers 200; fail early if the process died."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
+#: How long a starting service may use no CPU at all before it counts as stuck (seconds): loading the
+#: models is CPU work, so a process that makes no progress for this long is not loading.
+STALL_S = 30.0
+#: The most a start may take however busy the machine (seconds).
+MAX_START_S = 900.0
+
+
+def cpu_seconds(pid: int) -> float:
+    """CPU time (user + system, seconds) of a process and of its live children (the grounding workers);
+    0 once it is gone. Linux /proc."""
+    total, tick = 0.0, os.sysconf("SC_CLK_TCK")
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # exited meanwhile
+            continue
+        if int(stat.parent.name) == pid or int(fields[1]) == pid:  # fields[1]: the parent's pid
+            total += (int(fields[11]) + int(fields[12])) / tick
+    return total
+
+
+def wait_ready(
+    url: str, proc: subprocess.Popen | None = None, stall_s: float = STALL_S, timeout_s: float = MAX_START_S
+) -> None:
+    """Poll /readyz until it answers 200, for as long as the starting process keeps working: a busy
+    machine loads the models more slowly, so the wait follows the process's CPU progress rather than a
+    fixed time. Fails early if the process died, or made no progress for `stall_s`."""
+    start = time.monotonic()
+    progress, last_cpu = start, -1.0
+    while time.monotonic() - start < timeout_s:
         if proc is not None and proc.poll() is not None:
             msg = f"the service exited with code {proc.returncode} before becoming ready"
             raise RuntimeError(msg)
@@ -47,17 +74,25 @@ def wait_ready(url: str, proc: subprocess.Popen | None = None, timeout_s: float 
                 return
         except httpx.TransportError:
             pass
+        now = time.monotonic()
+        if proc is not None:
+            cpu = cpu_seconds(proc.pid)
+            if cpu > last_cpu:
+                progress, last_cpu = now, cpu
+            elif now - progress > stall_s:
+                msg = f"the service at {url} used no CPU for {stall_s:g} s without becoming ready"
+                raise RuntimeError(msg)
         time.sleep(0.1)
-    msg = f"the service at {url} did not become ready within {timeout_s} s"
+    msg = f"the service at {url} did not become ready within {timeout_s:g} s"
     raise RuntimeError(msg)
 
 
 @contextmanager
-def running_service(env: dict[str, str] | None = None, timeout_s: float = 60.0) -> Iterator[str]:
+def running_service(env: dict[str, str] | None = None, timeout_s: float = MAX_START_S) -> Iterator[str]:
     """Yield the base URL of a ready `vlmap serve` process; stop it afterwards."""
     proc, url = start_service(env)
     try:
-        wait_ready(url, proc, timeout_s)
+        wait_ready(url, proc, timeout_s=timeout_s)
         yield url
     finally:
         proc.terminate()
