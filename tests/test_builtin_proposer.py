@@ -25,7 +25,6 @@ from app.grounding.builtin import (
 from app.grounding.geometric import GeometricGrounder
 from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT
 from app.grounding.interfaces import HypothesisProposer
-from app.grounding.lexical import regions_named
 from app.grounding.mixture import UniformBox, map_box
 from app.grounding.parsing import parse_utterance
 from app.grounding.referent_features import SceneBoxes, attribute_scores, between_mask, related_mask
@@ -34,6 +33,7 @@ from app.grounding.sensor import LanguageSensor, broad_boxes, subtract
 from app.lsm.grounder import LSMGrounder
 from app.lsm.text_encoder import TextEncoder
 from app.scene_graph.model import SceneGraph
+from app.vocabulary import regions_named
 
 SCENES = Path(__file__).parent / "resources" / "scenes"
 
@@ -159,10 +159,10 @@ def test_storey_words_pick_regions_by_height() -> None:
     graph = scene(
         [], [room("up", "bedroom", 0.0, z=4.0), room("down", "bedroom", 0.0), room("k", "kitchen", 8.0)]
     )
-    assert regions_named(graph, "upstairs bedroom") == {"up"}
-    assert regions_named(graph, "downstairs") == {"down", "k"}
-    assert regions_named(graph, "kitchen") == {"k"}
-    assert regions_named(graph, "garage") is None
+    assert regions_named(graph.regions, "upstairs bedroom") == {"up"}
+    assert regions_named(graph.regions, "downstairs") == {"down", "k"}
+    assert regions_named(graph.regions, "kitchen") == {"k"}
+    assert regions_named(graph.regions, "garage") is None
     # The broad term reads a region phrase by the same rule as the proposer: "upstairs" is the upper bedroom.
     parse = parse_utterance("my keys are somewhere upstairs", ("bedroom", "kitchen"))
     assert parse.region_phrase is not None and "upstairs" in parse.region_phrase

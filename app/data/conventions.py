@@ -95,7 +95,6 @@ import math
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from enum import StrEnum
-from functools import lru_cache
 
 import numpy as np
 
@@ -132,7 +131,7 @@ from app.data.relations import (
 )
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneObject
-from app.vocabulary import class_key, head_noun, lemmas
+from app.vocabulary import class_key, in_classes
 
 
 class Convention(StrEnum):
@@ -237,20 +236,8 @@ VLA3D_ON = OnRule(
 VLA3D_INSIDE = InRule(z_tolerance=ROUND_OFF, every_side_smaller=True)
 
 
-@lru_cache(maxsize=64)
-def _keys(names: frozenset[str]) -> frozenset[str]:
-    return frozenset(class_key(n) for n in names)
-
-
-@lru_cache(maxsize=1 << 16)
-def _member(label: str, names: frozenset[str]) -> bool:
-    """Whether the label, or its head noun, names a class of `names` (by the vocabulary's class keys)."""
-    keys = _keys(names)
-    return class_key(label) in keys or class_key(head_noun(lemmas(label))) in keys
-
-
 def _mask(labels: Sequence[str], names: frozenset[str]) -> np.ndarray:
-    return np.array([_member(lab, names) for lab in labels], dtype=bool)
+    return np.array([in_classes(lab, names) for lab in labels], dtype=bool)
 
 
 def _allowed(relation: Relation, labels: Sequence[str]) -> np.ndarray:
@@ -404,7 +391,7 @@ def _vla3d_binary(
     box against (N, 3)) with a target class label: masks of the anchors' shape."""
     in_on = _mask(labels, VLA3D_IN_ON)
     container = _mask(labels, VLA3D_IN)
-    target_structure = _member(target_label, VLA3D_STRUCTURES)
+    target_structure = in_classes(target_label, VLA3D_STRUCTURES)
     on = (
         is_on(tbox, boxes, 1.0, VLA3D_ON)
         & ~_mask(labels, VLA3D_VERTICAL_STRUCTURES)
@@ -413,7 +400,7 @@ def _vla3d_binary(
     ) & (not target_structure)
     upper_band = top_in_upper_band(tbox, boxes, VLA3D_IN_THRES)
     inside = is_in(tbox, boxes, VLA3D_INSIDE) & (container | (in_on & ~upper_band))
-    hanging = None if _member(target_label, VLA3D_SUPPORTING) else VLA3D_HANGING_BELOW
+    hanging = None if in_classes(target_label, VLA3D_SUPPORTING) else VLA3D_HANGING_BELOW
     return {
         Relation.ON: on,
         Relation.IN: inside,
@@ -424,7 +411,7 @@ def _vla3d_binary(
 
 
 def _vla3d(target: SceneObject, others: Sequence[SceneObject], region_volume: float) -> list[TrueReading]:
-    if not others or _member(target.label, VLA3D_EXCLUDED):
+    if not others or in_classes(target.label, VLA3D_EXCLUDED):
         return []
     labels = [o.label for o in others]
     ids = [o.id for o in others]

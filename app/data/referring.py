@@ -20,6 +20,7 @@ from typing import Any
 
 from app.data.cases import CaseTarget, GroundingCase
 from app.scene_graph.model import SceneGraph, SceneObject
+from app.vocabulary import same_class
 
 __all__ = ["ReferringReport", "referring_cases", "scene_objects"]
 
@@ -89,6 +90,6 @@ def referring_cases(
                     "source": source,
                     "scene_id": str(raw["scene_id"]),
                     "target_id": target_id,
-                    "same_class_distractors": sum(o.label == target.label for o in others),
+                    "same_class_distractors": sum(same_class(o.label, target.label) for o in others),
                 },
             )

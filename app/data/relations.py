@@ -1,5 +1,6 @@
 """True spatial relations between a target box and the other objects of a scene: the one set of box
-predicates of the project.
+predicates of the project, and its one set of thresholds (the proposer's context counts,
+`app.grounding.referent_features.related_mask`, test coarser predicates with these same constants).
 
 Everything works on axis-aligned boxes (metres, z up), as the training layouts provide them. A `Box` holds
 lower and upper corners of shape (..., 3); every predicate broadcasts, so one call tests a target against all
@@ -16,7 +17,9 @@ below. Predicates that other datasets define differently take their thresholds a
 conventions use (`hull_occupancy`, `axis_between`, `ranked_ordinal_relations`) here too, so that there is one
 set of box relations.
 
-Label policy of the vlmap convention (which objects may serve as anchors), decided here once:
+Label policy of the vlmap convention (which objects may serve as anchors), decided here once; a label is of a
+class below by `app.vocabulary.in_classes` (any spelling, synonyms, the head noun: raw labels and lemmatised
+ones get one answer):
 
 * floor and ceiling are never anchors: everything is "near"/"above" the floor, and "on the floor" names no
   location beyond the room itself (the region does that);
@@ -42,7 +45,7 @@ import numpy as np
 
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneObject
-from app.vocabulary import same_class
+from app.vocabulary import in_classes, same_class
 
 # on: the target's bottom may lie this far above the anchor's top (boxes float a little in scans) ...
 ON_GAP_TOLERANCE = 0.10
@@ -53,7 +56,9 @@ ON_MIN_BOTTOM_FRACTION = 0.5
 # on: the target's footprint centre may overhang the anchor's footprint by this much.
 ON_XY_MARGIN = 0.05
 # on, internal supports (seats, beds, shelves): the supported bottom is at least this high above the anchor's
-# base, which keeps things standing on the floor next to or under the anchor out ...
+# base, which keeps things standing on the floor next to or under the anchor out (the same height as
+# UNDER_BASE_TOLERANCE, so that "on the seat" and "under the chair" do not share a bottom height; the
+# proposer's context counts use it too) ...
 INTERNAL_SUPPORT_MIN_HEIGHT = 0.15
 # ... and at most this fraction of a seat's height: seats lie below backrests and headboards, while a
 # keyboard at 0.8 of a chair's height is on the desk the chair is tucked under (shelves reach their top).
@@ -61,6 +66,8 @@ SEAT_SURFACE_MAX_FRACTION = 0.7
 # in: how far the target's box may poke out of the container's box at the top or bottom.
 IN_Z_TOLERANCE = 0.05
 # above / hanging below: vertical gap range between the two boxes ("not touching", "within a max height").
+# The gap starts beyond ON_GAP_TOLERANCE: a target between the two neither rests on the anchor nor clearly
+# floats over it, and no reading names it. One threshold for the builder and the proposer's context counts.
 VERTICAL_MIN_GAP = 0.15
 VERTICAL_MAX_GAP = 1.50
 # above / hanging below: footprint intersection over the smaller footprint.
@@ -89,43 +96,38 @@ HULL_GRID = 20
 
 
 def label_set(text: str) -> frozenset[str]:
-    """A label class written as one comma-separated string."""
+    """A label class written as one comma-separated string of names. Labels are matched to it by
+    `app.vocabulary.in_classes` (class keys, head nouns): plurals and synonyms need no entry of their own."""
     return frozenset(name.strip() for name in text.split(","))
 
 
-FLOOR_CEILING = label_set("floor, floors, ceiling, ceilings")
-WALLS = label_set("wall, walls, closet wall, closet walls, shower wall, shower walls")
+FLOORS = label_set("floor")
+CEILINGS = label_set("ceiling")
+FLOOR_CEILING = FLOORS | CEILINGS
+WALLS = label_set("wall, closet wall, shower wall")
 WALL_LIKE = WALLS | label_set(
-    "bathroom stall, partition, divider, pillar, column, beam, pipe, pipes, stair rail, railing, rail, stairs"
+    "bathroom stall, partition, divider, pillar, column, beam, pipe, stair rail, railing, rail, stairs"
 )
 OPENINGS = label_set(
-    "door, doors, doorframe, door frame, doorway, window, windows, window frame, closet door, "
-    "closet doors, bathroom stall door, shower door, shower doors, glass door, sliding door, "
-    "garage door, curtain, curtains, blinds, shower curtain, shower glass"
+    "door, doorframe, doorway, window, window frame, closet door, bathroom stall door, shower door, "
+    "glass door, sliding door, garage door, curtain, blinds, shower curtain, shower glass"
 )
-GENERIC = frozenset(
-    {"object", "objects", "structure", "otherstructure", "otherprop", "otherfurniture", "unknown"}
-)
-PARTS = label_set("drawer, drawers, stove knob, knob, knobs, handle, handles")
+GENERIC = label_set("object, structure, otherstructure, otherprop, otherfurniture, unknown")
+PARTS = label_set("drawer, stove knob, knob, handle")
 CONTAINERS = label_set(
-    "cabinet, cabinets, kitchen cabinet, kitchen cabinets, file cabinet, bathroom cabinet, drawer, "
-    "drawers, dresser, nightstand, night stand, refrigerator, fridge, mini fridge, freezer, "
-    "microwave, oven, toaster oven, dishwasher, washing machine, clothes dryer, box, boxes, bin, "
-    "trash can, trash bin, garbage can, garbage bin, recycling bin, storage bin, storage container, "
-    "container, basket, laundry basket, laundry hamper, hamper, bucket, sink, sink basin, bathtub, "
-    "bathtub basin, tub, closet, wardrobe, wardrobe closet, safe, crate, bowl, pot, pan, cup, mug, "
-    "kettle, coffee machine, bag, suitcase"
+    "cabinet, kitchen cabinet, file cabinet, bathroom cabinet, drawer, dresser, nightstand, refrigerator, "
+    "mini fridge, freezer, microwave, oven, toaster oven, dishwasher, washing machine, clothes dryer, box, "
+    "bin, trash can, recycling bin, storage bin, storage container, container, basket, laundry hamper, "
+    "bucket, sink, sink basin, bathtub, bathtub basin, closet, wardrobe, wardrobe closet, safe, crate, "
+    "bowl, pot, pan, cup, mug, kettle, coffee machine, bag, suitcase"
 )
 # Boxes with support surfaces inside them: seats under backrests and headboards, boards of shelves.
-SEATS = label_set("chair, office chair, armchair, arm chair, sofa chair, couch, sofa, bed, bench")
-SHELVES = label_set(
-    "shelf, shelves, bookshelf, bookshelves, bookcase, shelving unit, cart, rack, stand, tv stand"
-)
+SEATS = label_set("chair, office chair, armchair, couch, bed, bench")
+SHELVES = label_set("shelf, bookshelf, shelving unit, cart, rack, stand, tv stand")
 # Furniture with free space underneath: "the box under the table".
 CLEARANCE_BELOW = label_set(
-    "table, desk, counter, kitchen counter, countertop, kitchen island, bed, chair, office chair, "
-    "stool, bench, shelf, tv stand, coffee table, end table, side table, dining table, bar, "
-    "piano bench, ottoman, sink"
+    "table, desk, counter, kitchen island, bed, chair, office chair, stool, bench, shelf, tv stand, "
+    "coffee table, end table, dining table, bar, piano bench, ottoman, sink"
 )
 
 
@@ -236,56 +238,58 @@ IN_RULE = InRule()
 # --- label policy -----------------------------------------------------------------------------------------
 
 
-def _in_class(label: str, names: frozenset[str]) -> bool:
-    """Whether the label, or its head noun (last word: "file cabinet" -> "cabinet"), belongs to the class."""
-    text = label.strip().lower()
-    return text in names or text.rsplit(" ", 1)[-1] in names
+def is_floor(label: str) -> bool:
+    return in_classes(label, FLOORS)
+
+
+def is_ceiling(label: str) -> bool:
+    return in_classes(label, CEILINGS)
 
 
 def is_structure(label: str) -> bool:
     """Floors, ceilings, walls, openings and generic labels: never a small movable target."""
-    return any(_in_class(label, names) for names in (FLOOR_CEILING, WALL_LIKE, OPENINGS, GENERIC))
+    return any(in_classes(label, names) for names in (FLOOR_CEILING, WALL_LIKE, OPENINGS, GENERIC))
 
 
 def is_room_shell(label: str) -> bool:
     """Floors, ceilings, walls and generic labels: never a target of any size (doors and windows may be)."""
-    return any(_in_class(label, names) for names in (FLOOR_CEILING, WALLS, GENERIC))
+    return any(in_classes(label, names) for names in (FLOOR_CEILING, WALLS, GENERIC))
 
 
 def is_wall(label: str) -> bool:
-    return _in_class(label, WALLS)
+    return in_classes(label, WALLS)
 
 
 def is_container(label: str) -> bool:
-    return _in_class(label, CONTAINERS)
+    return in_classes(label, CONTAINERS)
 
 
 @lru_cache(maxsize=1 << 14)
 def internal_support_reach(label: str) -> float:
     """Up to which fraction of its height an anchor may carry things inside its box: 0 for a plain top
     surface, SEAT_SURFACE_MAX_FRACTION for seats, 1 for shelves."""
-    if _in_class(label, SHELVES):
+    if in_classes(label, SHELVES):
         return 1.0
-    if _in_class(label, SEATS):
+    if in_classes(label, SEATS):
         return SEAT_SURFACE_MAX_FRACTION
     return 0.0
 
 
 @lru_cache(maxsize=1 << 14)
 def has_clearance_below(label: str) -> bool:
-    return _in_class(label, CLEARANCE_BELOW)
+    return in_classes(label, CLEARANCE_BELOW)
 
 
 @lru_cache(maxsize=1 << 16)
 def anchor_allowed(relation: Relation, label: str) -> bool:
     """Whether an object with this label may anchor the relation (the policy in the module docstring)."""
-    if _in_class(label, FLOOR_CEILING) or _in_class(label, GENERIC):
+    if in_classes(label, FLOOR_CEILING) or in_classes(label, GENERIC):
         return False
-    if _in_class(label, WALL_LIKE):
+    if in_classes(label, WALL_LIKE):
         return relation is Relation.NEAR
-    if _in_class(label, OPENINGS):
+    if in_classes(label, OPENINGS):
         return relation not in (Relation.ON, Relation.IN)
-    if _in_class(label, PARTS) and relation not in (Relation.IN, Relation.NEAR):
+    if in_classes(label, PARTS) and relation not in (Relation.IN, Relation.NEAR):
         return False
     if relation is Relation.IN:
         return is_container(label)

@@ -51,7 +51,7 @@ import numpy as np
 from app.data.relations import anchor_allowed
 from app.errors import ModelUnavailable
 from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis, Mention, Proposal, UtteranceParse
-from app.grounding.lexical import describe, regions_named
+from app.grounding.lexical import describe
 from app.grounding.mixture import UniformBox
 from app.grounding.parsing import parse_utterance
 from app.grounding.referent_features import (
@@ -70,7 +70,7 @@ from app.grounding.referent_features import (
 )
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, SceneObject
-from app.vocabulary import class_key, lemmas, lexical_match, normalise, other_names
+from app.vocabulary import class_key, lemmas, lexical_match, normalise, other_names, regions_named
 
 if TYPE_CHECKING:
     from app.lsm.text_encoder import TextEncoder
@@ -385,9 +385,8 @@ class BuiltinProposer:
 
     def parse(self, scene_graph: SceneGraph, utterance: str) -> UtteranceParse:
         """The utterance read with the map's region names and labels in the vocabulary."""
-        region_names = tuple(normalise(r.name) for r in scene_graph.regions if r.name)
         labels = tuple(sorted({n for o in scene_graph.objects for n in object_names(o)}))
-        return parse_utterance(utterance, region_names, labels)
+        return parse_utterance(utterance, tuple(r.name for r in scene_graph.regions), labels)
 
     def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal:
         parse = self.parse(scene_graph, utterance)
@@ -469,7 +468,7 @@ class BuiltinProposer:
         cosine = np.maximum(phrase_cosine[:, first], phrase_cosine[:, last])  # (T, N)
         levels = np.maximum(name_level[:, first], name_level[:, last])  # (T, N)
 
-        region_ids = regions_named(scene_graph, parse.region_phrase)
+        region_ids = regions_named(scene_graph.regions, parse.region_phrase)
         in_region = None if region_ids is None else np.array([o.region_id in region_ids for o in objects])
         vocabulary = frozenset().union(*(object_attribute_words(o) for o in objects))
         region_ignored = False

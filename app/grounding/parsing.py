@@ -38,14 +38,13 @@ from functools import lru_cache
 
 from app.grounding.hypotheses import Mention, UtteranceParse
 from app.grounding.relations import RELATION_PHRASES, Relation
-from app.vocabulary import lemmas, normalise, object_nouns, same_class
+from app.vocabulary import ROOM_WORDS, lemmas, normalise, object_nouns, same_class
 
 __all__ = [
     "ATTRIBUTE_WORDS",
     "COLOR_WORDS",
     "EXTRA_PHRASES",
     "MATERIAL_WORDS",
-    "ROOM_WORDS",
     "SHAPE_WORDS",
     "SIZE_WORDS",
     "VAGUE_PHRASES",
@@ -145,41 +144,6 @@ EXTRA_PHRASES: dict[Relation, tuple[str, ...]] = {
 }
 # "in the middle of A and B" is between; of one thing ("of the room") it is a vague place.
 _MIDDLE_PHRASES = frozenset({"in the middle of", "in the center of", "in the centre of"})
-#: Room words read as a region even when the scene graph names no such region ("in the garage").
-ROOM_WORDS: tuple[str, ...] = (
-    "kitchen",
-    "bedroom",
-    "bathroom",
-    "living room",
-    "dining room",
-    "family room",
-    "guest room",
-    "laundry room",
-    "utility room",
-    "storage room",
-    "conference room",
-    "meeting room",
-    "office",
-    "hallway",
-    "hall",
-    "corridor",
-    "garage",
-    "basement",
-    "attic",
-    "lounge",
-    "study",
-    "nursery",
-    "playroom",
-    "lobby",
-    "entrance",
-    "entryway",
-    "foyer",
-    "porch",
-    "balcony",
-    "room",
-    "apartment",
-    "house",
-)
 _REGION_QUALIFIERS = (
     "upstairs|downstairs|main|master|guest|spare|kids|kids'|children's|first|second|third|big|small|"
     "large|little|front|back|other|top|ground floor|upper|lower"
@@ -536,11 +500,13 @@ def parse_utterance(
 ) -> UtteranceParse:
     """Read an utterance: its target, every mention and how it constrains the target, the regions named.
 
-    `region_names` (lower case) are the scene's region names; room words ("kitchen", "garage") are read as
-    regions too. `object_names` (lemmatised labels of the map) join the vocabulary of object names. With no
-    relation word at all, the whole utterance names the target and the relation is "near" with no anchor.
+    `region_names` are the scene's region names, read through `normalise` as the utterance is ("Living_Room"
+    is "living room"); room words (`ROOM_WORDS`: "kitchen", "garage") are read as regions too.
+    `object_names` (lemmatised labels of the map) join the vocabulary of object names. With no relation word
+    at all, the whole utterance names the target and the relation is "near" with no anchor.
     """
     lexicon = object_nouns() | frozenset(object_names)
+    region_names = tuple(normalise(n) for n in region_names)
     regions: list[str] = []
     mentions: list[Mention] = []
     target_index: int | None = None

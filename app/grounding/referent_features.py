@@ -37,6 +37,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.data.relations import (
+    BETWEEN_MAX_OFFSET,
+    BETWEEN_MAX_SEPARATION,
+    BETWEEN_MIN_SEPARATION,
+    INTERNAL_SUPPORT_MIN_HEIGHT,
+    NEAR_MAX_DISTANCE,
+    ON_GAP_TOLERANCE,
+    ON_SINK_TOLERANCE,
+    UNDER_BASE_TOLERANCE,
+    UNDER_CLEARANCE,
+    VERTICAL_MAX_GAP,
+    VERTICAL_MIN_GAP,
+    Box,
+    footprint_contains,
+    surface_distance,
+)
 from app.grounding.parsing import COLOR_WORDS, MATERIAL_WORDS, SHAPE_WORDS, SIZE_WORDS
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneObject
@@ -71,18 +87,12 @@ FEATURES: tuple[str, ...] = (
 N_FEATURES = len(FEATURES)
 _COLUMN = {name: j for j, name in enumerate(FEATURES)}
 
-# Relation predicates for the context counts (coarse on purpose: they describe the anchor, not the target).
-ON_SINK = 0.25  # a supported object's bottom may sit this far below the support's top (scan boxes) ...
-ON_GAP = 0.10  # ... or float this far above it
-INTERNAL_SUPPORT = 0.10  # shelves and seats: a bottom this far above the anchor's base is supported inside
-NEAR_DISTANCE = 0.6  # "near": surface-to-surface distance
-SIBLING_RADIUS = 1.0
-VERTICAL_GAP = (0.10, 1.50)  # "above": the bottom this far over the anchor's top
-UNDER_CLEARANCE = 0.10  # "below": the top this far under the anchor's top ...
-UNDER_BASE = 0.15  # ... and the bottom within this of the anchor's base (or wholly under a hanging anchor)
-BETWEEN_OFFSET = 0.5  # "between": distance from the segment joining the anchors (floor plane)
-# "between": anchors people call "between" stand apart by this much, and not much more.
-PAIR_SEPARATION = (0.5, 3.0)
+# The context counts test coarse relation predicates (`related_mask`, `between_mask`: they describe the
+# anchor, not the target, so no label policy and no footprint overlap), with the one set of thresholds of
+# the box relations (`app.data.relations`).
+SIBLING_RADIUS = 1.0  # metres: objects this close to the anchor's surface are its surroundings
+# "between": the gap is the middle of the segment joining the anchors' centres, this fraction off each end.
+BETWEEN_END_FRACTION = 0.1
 MIN_SIZE = 0.02  # metres: floor for box sides in logarithms
 DISTANCE_RANGE = (0.1, 30.0)  # metres: clip range of the distances in logarithms
 HEIGHT_CLIP = 3.0  # metres: vertical gaps beyond this say nothing more
@@ -118,49 +128,49 @@ class SceneBoxes:
 
 
 def surface_distances(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> np.ndarray:
-    """Box-to-box distance ||max(0, lo_b - hi_a, lo_a - hi_b)||, for (A, 3) and (B, 3) corners -> (A, B)."""
-    gap = np.maximum(0.0, np.maximum(lo_b[None] - hi_a[:, None], lo_a[:, None] - hi_b[None]))  # (A, B, 3)
-    return np.sqrt(np.sum(gap * gap, axis=-1))
+    """`app.data.relations.surface_distance` of every pair, for (A, 3) and (B, 3) corners -> (A, B)."""
+    return surface_distance(Box(lo_a, hi_a).expand(1), Box(lo_b, hi_b).expand(0))
 
 
 def related_mask(relation: Relation, boxes: SceneBoxes, anchors: np.ndarray) -> np.ndarray:
     """(A, N): object n stands in `relation` to anchor `anchors[a]` (never to itself).
 
-    on: footprint centre over the anchor, bottom at its top (within ON_SINK below, ON_GAP above) or on an
-    internal support; in: centre inside the box and smaller; above: centre over the footprint, bottom
-    VERTICAL_GAP over the top; below: centre under the footprint, top UNDER_CLEARANCE under the anchor's top
-    and bottom at its base or wholly under it; near, closest, farthest: surface distance <= NEAR_DISTANCE.
+    With the thresholds of `app.data.relations`: on: footprint centre over the anchor, bottom at its top
+    (within ON_SINK_TOLERANCE below, ON_GAP_TOLERANCE above) or on an internal support (at least
+    INTERNAL_SUPPORT_MIN_HEIGHT over the anchor's base, under its top: any anchor may be a shelf); in: centre
+    inside the box and smaller; above: centre over the footprint, bottom VERTICAL_MIN_GAP to VERTICAL_MAX_GAP
+    over the top; below: centre under the footprint, top UNDER_CLEARANCE under the anchor's top and bottom
+    within UNDER_BASE_TOLERANCE of its base or wholly under it; near, closest, farthest: surface distance
+    <= NEAR_MAX_DISTANCE.
     """
     lo_a, hi_a = boxes.lo[anchors], boxes.hi[anchors]  # (A, 3)
     center = boxes.center  # (N, 3)
-    over = np.all(
-        (center[None, :, :2] >= lo_a[:, None, :2]) & (center[None, :, :2] <= hi_a[:, None, :2]), axis=-1
-    )  # (A, N): footprint centre over the anchor's footprint
+    anchor = Box(lo_a, hi_a).expand(1)  # (A, 1, 3)
+    over = footprint_contains(anchor, center[None, :, :2])  # (A, N): footprint centre over the anchor's
     bottom, top = boxes.lo[None, :, 2], boxes.hi[None, :, 2]  # (1, N)
     a_bottom, a_top = lo_a[:, None, 2], hi_a[:, None, 2]  # (A, 1)
     if relation is Relation.ON:
-        on_top = (bottom >= a_top - ON_SINK) & (bottom <= a_top + ON_GAP)
-        inside = (bottom >= a_bottom + INTERNAL_SUPPORT) & (bottom < a_top)
+        on_top = (bottom >= a_top - ON_SINK_TOLERANCE) & (bottom <= a_top + ON_GAP_TOLERANCE)
+        inside = (bottom >= a_bottom + INTERNAL_SUPPORT_MIN_HEIGHT) & (bottom < a_top)
         mask = over & (on_top | inside)
     elif relation is Relation.IN:
         volume = np.prod(boxes.size, axis=1)  # (N,)
         enclosed = np.all((center[None] >= lo_a[:, None]) & (center[None] <= hi_a[:, None]), axis=-1)
         mask = enclosed & (volume[None] < volume[anchors][:, None])
     elif relation is Relation.ABOVE:
-        mask = over & (bottom >= a_top + VERTICAL_GAP[0]) & (bottom <= a_top + VERTICAL_GAP[1])
+        mask = over & (bottom > a_top + VERTICAL_MIN_GAP) & (bottom <= a_top + VERTICAL_MAX_GAP)
     elif relation is Relation.BELOW:
-        mask = (
-            over & (top <= a_top - UNDER_CLEARANCE) & ((bottom <= a_bottom + UNDER_BASE) | (top <= a_bottom))
-        )
+        on_floor = (bottom <= a_bottom + UNDER_BASE_TOLERANCE) | (top <= a_bottom)
+        mask = over & (top <= a_top - UNDER_CLEARANCE) & on_floor
     else:
-        mask = surface_distances(lo_a, hi_a, boxes.lo, boxes.hi) <= NEAR_DISTANCE
+        mask = surface_distances(lo_a, hi_a, boxes.lo, boxes.hi) <= NEAR_MAX_DISTANCE
     mask[np.arange(len(anchors)), anchors] = False
     return mask
 
 
 def between_mask(boxes: SceneBoxes, pairs: np.ndarray) -> np.ndarray:
-    """(P, N): object n lies in the gap of pair p: floor-plane centre within BETWEEN_OFFSET of the segment
-    joining the anchors' centres, projecting strictly inside it (not onto either anchor's centre)."""
+    """(P, N): object n lies in the gap of pair p: floor-plane centre within BETWEEN_MAX_OFFSET of the
+    segment joining the anchors' centres, projecting onto its middle (BETWEEN_END_FRACTION off each end)."""
     c = boxes.center[:, :2]  # (N, 2)
     a, b = c[pairs[:, 0]], c[pairs[:, 1]]  # (P, 2)
     ab = b - a
@@ -168,7 +178,8 @@ def between_mask(boxes: SceneBoxes, pairs: np.ndarray) -> np.ndarray:
     t = np.einsum("pnd,pd->pn", c[None] - a[:, None], ab) / length2[:, None]  # (P, N)
     closest = a[:, None] + t[..., None] * ab[:, None]  # (P, N, 2)
     offset = np.linalg.norm(c[None] - closest, axis=-1)  # (P, N)
-    mask = (t > 0.1) & (t < 0.9) & (offset <= BETWEEN_OFFSET)
+    middle = (t > BETWEEN_END_FRACTION) & (t < 1.0 - BETWEEN_END_FRACTION)
+    mask = middle & (offset <= BETWEEN_MAX_OFFSET)
     rows = np.arange(len(pairs))
     mask[rows, pairs[:, 0]] = False
     mask[rows, pairs[:, 1]] = False
@@ -284,8 +295,8 @@ def hypothesis_features(
         c = boxes.center[:, :2]
         separation = np.linalg.norm(c[groups[:, 0]] - c[groups[:, 1]], axis=1)
         out[:, _COLUMN["log_separation"]] = _log_distance(separation)
-        out[:, _COLUMN["pair_too_close"]] = separation < PAIR_SEPARATION[0]
-        out[:, _COLUMN["pair_too_far"]] = separation > PAIR_SEPARATION[1]
+        out[:, _COLUMN["pair_too_close"]] = separation < BETWEEN_MIN_SEPARATION
+        out[:, _COLUMN["pair_too_far"]] = separation > BETWEEN_MAX_SEPARATION
         if same_label is not None:
             out[:, _COLUMN["pair_same_label"]] = same_label
     return out

@@ -34,10 +34,10 @@ import numpy as np
 from app.errors import InvalidInput
 from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis, Proposal, UtteranceParse
 from app.grounding.interfaces import Grounder, HypothesisProposer
-from app.grounding.lexical import regions_named
 from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, map_box
 from app.grounding.parsing import parse_utterance
 from app.scene_graph.model import SceneGraph
+from app.vocabulary import regions_named
 
 StageObserver = Callable[[str, float], None]
 #: Hypotheses grounded one by one (the rest are merged per region).
@@ -147,8 +147,7 @@ class LanguageSensor:
             if unknown:
                 msg = f"unknown object id(s) {unknown}"
                 raise InvalidInput(msg, field=where)
-        region_names = tuple(r.name.lower() for r in scene_graph.regions if r.name)
-        parse = parse_utterance(utterance, region_names)
+        parse = parse_utterance(utterance, tuple(r.name for r in scene_graph.regions))
         filled = tuple(
             replace(h, region_id=h.region_id or scene_graph.object(h.anchor_ids[0]).region_id)
             for h in hypotheses
@@ -243,7 +242,7 @@ def broad_boxes(
     """The uniform part of B as boxes with weights summing to one: the mentioned regions (equal shares),
     else the map's box minus the `avoid` boxes (shares by volume, so it is uniform on what is left), else
     the map's box."""
-    region_ids = regions_named(scene_graph, parse.region_phrase)
+    region_ids = regions_named(scene_graph.regions, parse.region_phrase)
     if region_ids:
         boxes = [
             UniformBox.around(

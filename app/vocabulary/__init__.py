@@ -18,25 +18,50 @@ window" are objects?), the case builder (how may a speaker call a labelled objec
   "computer" for "the computer tower"), 0 otherwise.
 - `object_nouns()`: the lemmatised names of things indoor maps hold (every label of the training layouts,
   the synonyms and the generic words), the parser's lexicon of possible mentions.
+- `in_classes(label, names)`: whether a label, or its head noun, is of one of the classes a set of names
+  names ("file cabinets" is a cabinet, "chest of drawers" a dresser and not a drawer): how the label
+  policies of the box relations (`app.data.relations`: walls, containers, seats) and of the conventions
+  read a map's labels.
+- Regions: `ROOM_WORDS` (read as a region even when the map names none), `STOREY_WORDS`, and
+  `regions_named(regions, phrase)`, the one rule for which of a map's regions a region phrase names (the
+  proposers, the broad term); the parser reads region names through `normalise`, as it reads utterances.
+
+Same class, or a looser naming: the one rule for look-alikes. "Same class" (`class_key`) is an equivalence
+over synonyms only; a generic word never makes two names the same class. The belief compares classes and
+only classes: a robot label names the target when it is of the target's class, and a mapped object is a
+look-alike (its voxels carry no label evidence, `app.belief.session.mapped_look_alikes`) only when it is of
+the target's class. So with the target "backpack" a "bag" sighting is a sighting of another class, and a
+mapped "bag" is not a look-alike: it may be the very backpack the robot looks for, and filtering it out
+would make the target unfindable there (a label map that says only "bag" has no name for a backpack target
+at all, and the session refuses it). Naming is looser (`lexical_match` 1): "the bag" in an utterance may
+mean the backpack, so the proposers match it, the case builder may say it, and a session looking for a
+backpack fuses an utterance about "the bag".
 """
 
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from functools import cache, lru_cache
 from pathlib import Path
+from typing import Protocol
 
 __all__ = [
     "GENERIC_NAMES",
+    "ROOM_WORDS",
+    "STOREY_WORDS",
     "SYNONYM_GROUPS",
+    "NamedRegion",
     "class_key",
     "head_noun",
+    "in_classes",
     "label_tokens",
     "lemmas",
     "lexical_match",
     "normalise",
     "object_nouns",
     "other_names",
+    "regions_named",
     "same_class",
     "singular",
 ]
@@ -57,6 +82,9 @@ _IRREGULAR_PLURALS = {
     "shorts": "shorts",
     "scissors": "scissors",
 }
+# Irregular plurals that also end compounds ("bookshelves", "penknives"); the short ones ("feet", "mice") do
+# not: they end unrelated words too.
+_IRREGULAR_SUFFIXES = tuple(p for p in _IRREGULAR_PLURALS if len(p) >= 5)
 # Words that end in "s" in the singular.
 _SINGULAR_S = frozenset(
     {"glass", "bus", "gas", "lens", "canvas", "chess", "dress", "mattress", "news", "series"}
@@ -72,9 +100,13 @@ def normalise(text: str) -> str:
 
 
 def singular(word: str) -> str:
-    """Rough English singular of one word ("boxes" -> "box", "chairs" -> "chair", "glass" stays)."""
+    """Rough English singular of one word ("boxes" -> "box", "chairs" -> "chair", "glass" stays,
+    "bookshelves" -> "bookshelf")."""
     if word in _IRREGULAR_PLURALS:
         return _IRREGULAR_PLURALS[word]
+    for plural in _IRREGULAR_SUFFIXES:
+        if word.endswith(plural):
+            return word[: -len(plural)] + _IRREGULAR_PLURALS[plural]
     if word in _SINGULAR_S:
         return word
     if len(word) > 4 and word.endswith("ies"):
@@ -272,3 +304,102 @@ def object_nouns() -> frozenset[str]:
     synonyms = {lemmas(n) for group in SYNONYM_GROUPS for n in group}
     generic = {lemmas(g) for g in GENERIC_NAMES} | {lemmas(c) for cs in GENERIC_NAMES.values() for c in cs}
     return frozenset(listed | synonyms | generic)
+
+
+@lru_cache(maxsize=256)
+def _class_keys(names: frozenset[str]) -> frozenset[str]:
+    return frozenset(class_key(n) for n in names)
+
+
+@lru_cache(maxsize=1 << 16)
+def in_classes(label: str, names: frozenset[str]) -> bool:
+    """Whether the label, or its head noun, is of one of the classes of `names` (any spelling of them:
+    "Kitchen_Cabinets", "cupboards" and "file cabinet" are all of the class "cabinet"; "chest of drawers" is
+    of "dresser", its head noun "chest" is not "drawer")."""
+    keys = _class_keys(names)
+    return class_key(label) in keys or class_key(head_noun(lemmas(label))) in keys
+
+
+# --- regions ------------------------------------------------------------------------------------------------
+
+#: Room words read as a region even when the map names no such region ("in the garage").
+ROOM_WORDS: tuple[str, ...] = (
+    "kitchen",
+    "bedroom",
+    "bathroom",
+    "living room",
+    "dining room",
+    "family room",
+    "guest room",
+    "laundry room",
+    "utility room",
+    "storage room",
+    "conference room",
+    "meeting room",
+    "office",
+    "hallway",
+    "hall",
+    "corridor",
+    "garage",
+    "basement",
+    "attic",
+    "lounge",
+    "study",
+    "nursery",
+    "playroom",
+    "lobby",
+    "entrance",
+    "entryway",
+    "foyer",
+    "porch",
+    "balcony",
+    "room",
+    "apartment",
+    "house",
+)
+#: Storey words of a region phrase, and the side of the map they pick: +1 the upper regions, -1 the lower.
+STOREY_WORDS: dict[str, float] = {
+    "upstairs": 1.0,
+    "upper": 1.0,
+    "downstairs": -1.0,
+    "lower": -1.0,
+    "ground": -1.0,
+}
+#: Metres: regions whose centres lie closer in height than this are on one storey (a storey word keeps all).
+STOREY_MIN_SPREAD = 1.0
+
+
+class NamedRegion(Protocol):
+    """What region matching reads of a map's region (`app.scene_graph.model.Region` is one)."""
+
+    @property
+    def id(self) -> str: ...
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def center(self) -> Sequence[float]: ...
+
+
+def regions_named(regions: Sequence[NamedRegion], phrase: str | None) -> set[str] | None:
+    """Ids of the regions a region phrase names ("kitchen", "upstairs bedroom", "upstairs"), None if none.
+
+    Regions match by shared lemmas of their names (normalised as utterances are: "Living_Room" is named by
+    "living room" and "living rooms"); a storey word keeps those of them (or of all regions, if the phrase
+    names no room) whose centre lies above (below) the middle of their heights, when the heights spread
+    over `STOREY_MIN_SPREAD`.
+    """
+    if not phrase or not regions:
+        return None
+    words = normalise(phrase).split()
+    storey = [STOREY_WORDS[w] for w in words if w in STOREY_WORDS]
+    room_words = set(lemmas(" ".join(w for w in words if w not in STOREY_WORDS)).split())
+    pool = [r for r in regions if room_words & set(lemmas(r.name).split())] if room_words else []
+    if storey:
+        pool = pool or ([] if room_words else list(regions))
+        heights = [float(r.center[2]) for r in pool]
+        if len(pool) > 1 and max(heights) - min(heights) > STOREY_MIN_SPREAD:
+            middle = 0.5 * (min(heights) + max(heights))
+            pool = [r for r, z in zip(pool, heights, strict=True) if (z - middle) * storey[0] > 0]
+    return {r.id for r in pool} or None
