@@ -22,6 +22,7 @@ from app.evaluation.metrics import anees, nees
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.parsing import target_noun
 from app.grounding.relations import Relation
+from app.lsm.checkpoint import file_sha256
 from app.lsm.features import (
     PackedSamples,
     SceneArrays,
@@ -42,7 +43,7 @@ from app.lsm.model import (
     load_checkpoint,
     save_checkpoint,
 )
-from app.lsm.text_encoder import MINILM_SHA256, TextEncoder, file_sha256
+from app.lsm.text_encoder import MINILM_SHA256, TextEncoder
 from app.scene_graph.model import SceneGraph
 from app.training.lsm import Densities, apply_calibration, fit_calibration, predict
 from tests.conftest import moved_scene

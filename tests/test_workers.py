@@ -102,3 +102,49 @@ def test_a_killed_worker_costs_one_503_then_a_new_pool_serves(
     statuses = [_ground(pooled, scene_graph_dict, "the bag is on the desk").status_code for _ in range(2)]
     assert statuses == [503, 200], statuses
     assert workers._current_pool() is not pool
+
+
+def test_a_request_process_with_workers_describes_the_models_from_their_files_as_loaded_ones_do() -> None:
+    """With grounding workers the request process loads no model (`WorkerServed`); what /v1/models says of
+    the LSM and the built-in proposer is what the loaded models say of themselves."""
+    from app.api.bootstrap import WorkerServed, build_sensors
+    from app.api.observability import Metrics
+    from app.lsm.grounder import LSMGrounder
+    from app.settings import Settings
+
+    settings = Settings(_env_file=None, grounder="lsm", proposer="builtin")  # type: ignore[call-arg]
+    described = build_sensors(settings, Metrics(), in_workers=True)
+    assert isinstance(described.grounders["lsm"], WorkerServed)
+    assert isinstance(described.proposers["builtin"], WorkerServed)
+    loaded = build_sensors(settings, Metrics())
+    assert isinstance(loaded.grounders["lsm"], LSMGrounder)
+    for name in ("lsm", "geometric", "fixed"):
+        assert described.grounders[name].describe() == loaded.grounders[name].describe()
+    assert described.proposers["builtin"].describe() == loaded.proposers["builtin"].describe()
+    with_llm = build_sensors(
+        settings.model_copy(update={"llm_url": "http://127.0.0.1:9"}), Metrics(), in_workers=True
+    )
+    assert not isinstance(with_llm.grounders["lsm"], WorkerServed)  # the LLM parts need them here
+
+
+def test_the_request_process_of_a_pooled_service_never_imports_torch() -> None:
+    """What a replica's request process runs at start-up and to describe its models imports no torch or
+    transformers: their memory is the workers' alone."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from app.api.app import create_app\n"
+        "from app.api.bootstrap import build_sensors\n"
+        "from app.api.observability import Metrics\n"
+        "from app.settings import Settings\n"
+        "settings = Settings(_env_file=None, grounder='lsm', proposer='builtin', worker_processes=1)\n"
+        "create_app(settings)\n"
+        "build_sensors(settings, Metrics(), in_workers=True)\n"
+        "print(sorted(m for m in ('torch', 'transformers') if m in sys.modules))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout.strip() == "[]", out.stderr

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from functools import partial
 from typing import Any
 
 import anyio
@@ -82,27 +83,48 @@ async def purge_expired_sessions(services: Services) -> None:
                 log.info("purged expired sessions", extra={"sessions": purged})
 
 
+async def start_up(services: Services, owns_store: bool) -> None:
+    """Open the store, start the grounding workers (each loads the local models) and describe or load the
+    sensors: the service is ready when `services.sensors` and `services.sessions` are set."""
+    settings = services.settings
+    if owns_store:
+        services.use_store(await anyio.to_thread.run_sync(build_store, settings))
+    if services.sensors is None:
+        if settings.worker_processes > 0:  # the workers load the models (injected sensors stay here)
+            workers = WorkerProcesses(settings, settings.worker_processes)
+            await anyio.to_thread.run_sync(workers.start)
+            services.worker_processes = workers
+        in_workers = settings.worker_processes > 0
+        build = partial(build_sensors, settings, services.metrics, in_workers=in_workers)
+        services.sensors = await anyio.to_thread.run_sync(build)
+    await anyio.to_thread.run_sync(freeze_startup_objects)
+    log.info("ready", extra={"grounder": services.sensors.default, "store": settings.store})
+
+
 def create_app(
-    settings: Settings | None = None, sensors: Sensors | None = None, store: SessionStore | None = None
+    settings: Settings | None = None,
+    sensors: Sensors | None = None,
+    store: SessionStore | None = None,
+    *,
+    start_in_background: bool = False,
 ) -> FastAPI:
-    """Build the service. `sensors` and `store` override what the settings describe (tests, benchmarks)."""
+    """Build the service. `sensors` and `store` override what the settings describe (tests, benchmarks).
+
+    `start_in_background`: serve at once while the models load (`/healthz` answers, `/readyz` and the
+    routes that need the models or the store answer 503 until they are loaded), as `vlmap serve` does so
+    that an orchestrator can tell "starting" from "dead"; otherwise the app is ready when it starts.
+    """
     settings = settings or get_settings()
     services = Services(settings=settings, metrics=Metrics(), sensors=sensors, store=store)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         owns_store = services.store is None
-        if owns_store:
-            services.use_store(await anyio.to_thread.run_sync(build_store, settings))
-        if services.sensors is None:
-            services.sensors = await anyio.to_thread.run_sync(build_sensors, settings, services.metrics)
-            if settings.worker_processes > 0:  # workers load the same models (injected sensors stay here)
-                workers = WorkerProcesses(settings, settings.worker_processes)
-                await anyio.to_thread.run_sync(workers.start)
-                services.worker_processes = workers
-        await anyio.to_thread.run_sync(freeze_startup_objects)
-        log.info("ready", extra={"grounder": services.sensors.default, "store": settings.store})
         async with anyio.create_task_group() as tasks:
+            if start_in_background:
+                tasks.start_soon(start_up, services, owns_store)
+            else:
+                await start_up(services, owns_store)
             tasks.start_soon(purge_expired_sessions, services)
             try:
                 yield

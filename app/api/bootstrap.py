@@ -8,11 +8,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from app.api.observability import Metrics
-from app.errors import InvalidInput
+from app.errors import InvalidInput, ModelUnavailable
 from app.grounding.geometric import FixedGrounder, GeometricGrounder
+from app.grounding.hypotheses import Hypothesis, Proposal
 from app.grounding.interfaces import Grounder, HypothesisProposer
 from app.grounding.lexical import LexicalProposer
+from app.grounding.mixture import GaussianMixture
 from app.grounding.sensor import DEFAULT_MAX_GROUNDED, LanguageSensor, StageObserver
+from app.scene_graph.model import SceneGraph
 from app.settings import Settings
 from app.stores import open_store
 from app.stores.base import SessionStore
@@ -47,6 +50,32 @@ def _pick(loaded: dict[str, Any], name: str, field: str) -> Any:
     return loaded[name]
 
 
+class WorkerServed:
+    """A grounder or proposer that this process knows by its description only (read from its model files):
+    the grounding worker processes load and run it (`app.api.workers`), so the request process does not
+    hold a second copy of the models."""
+
+    def __init__(self, description: dict[str, Any]) -> None:
+        self._description = description
+        self.name: str = description["name"]
+        self.version: str = description["version"]
+
+    def describe(self) -> dict[str, Any]:
+        return dict(self._description)
+
+    def _elsewhere(self) -> ModelUnavailable:
+        msg = f"{self.name} runs in the grounding worker processes, which are not available"
+        return ModelUnavailable(msg)
+
+    def propose(self, scene_graph: SceneGraph, utterance: str) -> Proposal:
+        raise self._elsewhere()
+
+    def ground(
+        self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
+    ) -> list[GaussianMixture]:
+        raise self._elsewhere()
+
+
 def build_proposer(settings: Settings) -> HypothesisProposer:
     """The default proposer: the calibrated built-in one, or the uniform lexical one (no model needed)."""
     if settings.proposer == "lexical":
@@ -57,8 +86,15 @@ def build_proposer(settings: Settings) -> HypothesisProposer:
     return BuiltinProposer.load(default_text_encoder(settings.text_encoder_precision))
 
 
-def build_sensors(settings: Settings, metrics: Metrics) -> Sensors:
-    """The grounders named in `settings.grounders`, the built-in proposer and, with an endpoint, the LLM's."""
+def build_sensors(settings: Settings, metrics: Metrics, *, in_workers: bool = False) -> Sensors:
+    """The grounders named in `settings.grounders`, the built-in proposer and, with an endpoint, the LLM's.
+
+    `in_workers`: grounding worker processes serve the local models, so this process describes them from
+    their files (`WorkerServed`) instead of loading them; the LLM parts run here and need the built-in
+    proposer (their fallback) and the grounders loaded, so with an LLM endpoint everything is loaded.
+    """
+    if in_workers and not settings.llm_url:
+        return _described_sensors(settings, metrics)
     grounders: dict[str, Grounder] = {}
     for name in dict.fromkeys([settings.grounder, *settings.grounders]):
         if name == "geometric":
@@ -96,6 +132,35 @@ def build_sensors(settings: Settings, metrics: Metrics) -> Sensors:
     return Sensors(
         grounders,
         proposers,
+        settings.grounder,
+        observer=metrics.observe_stage,
+        max_grounded=settings.max_grounded_hypotheses,
+    )
+
+
+def _described_sensors(settings: Settings, metrics: Metrics) -> Sensors:
+    """`build_sensors` for a request process whose workers load the models: the LSM and the built-in
+    proposer by their descriptions, the model-free parts as they are."""
+    grounders: dict[str, Grounder] = {}
+    for name in dict.fromkeys([settings.grounder, *settings.grounders]):
+        if name == "geometric":
+            grounders[name] = GeometricGrounder()
+        elif name == "fixed":
+            grounders[name] = FixedGrounder()
+        elif name == "lsm":
+            from app.lsm.checkpoint import describe_checkpoint
+
+            grounders[name] = WorkerServed(describe_checkpoint(settings.model_dir / "lsm"))
+    proposer: HypothesisProposer
+    if settings.proposer == "lexical":
+        proposer = LexicalProposer(max_hypotheses=settings.max_hypotheses)
+    else:
+        from app.grounding.builtin import DEFAULT_PARAMS_PATH, ProposerParams, describe_params
+
+        proposer = WorkerServed(describe_params(ProposerParams.load(DEFAULT_PARAMS_PATH)))
+    return Sensors(
+        grounders,
+        {"builtin": proposer},
         settings.grounder,
         observer=metrics.observe_stage,
         max_grounded=settings.max_grounded_hypotheses,

@@ -12,7 +12,7 @@ from pathlib import Path
 log = logging.getLogger("vlmap.serve")
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     serve = sub.add_parser("serve", help="run the HTTP service")
     serve.add_argument("--host", default=None, help="bind address (default: settings, 127.0.0.1)")
     serve.add_argument("--port", type=int, default=None, help="port (default: settings, 8000)")
@@ -59,7 +59,7 @@ def serve_command(args: argparse.Namespace) -> int:
         log.warning("no API keys configured: every request is accepted (fine on loopback for development)")
     log.info("starting", extra={"host": host, "port": port, "grounder": settings.grounder})
     uvicorn.run(
-        create_app(settings),
+        create_app(settings, start_in_background=True),
         host=host,
         port=port,
         log_config=None,

@@ -260,6 +260,24 @@ class ProposerParams:
         return cls.from_json(json.loads(path.read_text(encoding="utf-8")))
 
 
+def describe_params(params: ProposerParams) -> dict[str, Any]:
+    """What `/v1/models` says of the built-in proposer with these fitted parameters (readable without
+    loading the text encoder)."""
+    fitted = params.to_json()
+    digest = hashlib.sha256(json.dumps(fitted, sort_keys=True).encode()).hexdigest()
+    config = {
+        "temperature": fitted["temperature"],
+        "min_background_weight": MIN_BACKGROUND_WEIGHT,
+        "spreads": fitted["spreads"],
+    }
+    return {
+        "name": BuiltinProposer.name,
+        "version": str(fitted["version"]),
+        "config": config,
+        "checksum": f"sha256:{digest}",
+    }
+
+
 def object_names(obj: SceneObject) -> tuple[str, ...]:
     """The label and, when a reader kept it, the raw label ("garbage bin" / "trash can"), lemmatised."""
     names = [lemmas(obj.label) or obj.label.lower()]
@@ -369,19 +387,7 @@ class BuiltinProposer:
 
     def describe(self) -> dict[str, Any]:
         """Name, version, config and the checksum of the fitted parameters (for /v1/models)."""
-        params = self.params.to_json()
-        digest = hashlib.sha256(json.dumps(params, sort_keys=True).encode()).hexdigest()
-        config = {
-            "temperature": params["temperature"],
-            "min_background_weight": MIN_BACKGROUND_WEIGHT,
-            "spreads": params["spreads"],
-        }
-        return {
-            "name": self.name,
-            "version": str(params["version"]),
-            "config": config,
-            "checksum": f"sha256:{digest}",
-        }
+        return describe_params(self.params)
 
     def parse(self, scene_graph: SceneGraph, utterance: str) -> UtteranceParse:
         """The utterance read with the map's region names and labels in the vocabulary."""

@@ -19,10 +19,11 @@ from app.errors import ModelUnavailable
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.mixture import Gaussian, GaussianMixture, project_to_pd
 from app.grounding.parsing import target_noun
+from app.lsm.checkpoint import CONFIG_NAME, LSM_NAME, WEIGHTS_NAME, description, file_sha256
 from app.lsm.features import PackedSamples, Sample, SceneArrays, make_sample
 from app.lsm.inference import LSMInference
-from app.lsm.model import CONFIG_NAME, WEIGHTS_NAME, LanguageSensorModel, LSMOutput, load_checkpoint
-from app.lsm.text_encoder import TextEncoder, file_sha256
+from app.lsm.model import LanguageSensorModel, LSMOutput, load_checkpoint
+from app.lsm.text_encoder import TextEncoder
 from app.scene_graph.model import SceneGraph
 
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[2] / "models" / "lsm"
@@ -47,7 +48,7 @@ def calibration_scale(calibration: Mapping[str, Any], key: str) -> float:
 class LSMGrounder:
     """The learned spatial grounder (`name = "lsm"`)."""
 
-    name = "lsm"
+    name = LSM_NAME
 
     def __init__(
         self, model: LanguageSensorModel, meta: dict[str, Any], encoder: TextEncoder, weights_sha256: str
@@ -123,9 +124,4 @@ class LSMGrounder:
         return GaussianMixture.from_components(weights, gaussians)
 
     def describe(self) -> dict[str, Any]:
-        return {
-            "name": self.name,
-            "version": self.version,
-            "config": self.meta,
-            "checksum": f"sha256:{self.weights_sha256}",
-        }
+        return description(self.meta, self.weights_sha256)

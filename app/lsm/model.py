@@ -40,12 +40,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from app.grounding.relations import Relation
+from app.lsm.checkpoint import CONFIG_NAME, WEIGHTS_NAME
 
 #: Row of each relation in the relation embedding table (enum order; fixed for saved checkpoints).
 RELATION_INDEX = {relation: index for index, relation in enumerate(Relation)}
 ROLE_QUERY, ROLE_ANCHOR, ROLE_OTHER = 0, 1, 2
-WEIGHTS_NAME = "model.safetensors"
-CONFIG_NAME = "config.json"
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
