@@ -26,6 +26,36 @@ def test_not_ready_before_the_model_is_loaded(settings: Settings) -> None:
     assert client.get("/healthz").status_code == 200
 
 
+def test_a_service_started_in_the_background_is_live_at_once_and_ready_once_loaded(
+    settings: Settings, monkeypatch: pytest.MonkeyPatch, scene_graph_dict: dict
+) -> None:
+    """`vlmap serve` answers /healthz while the models load, so that an orchestrator tells starting from
+    dead; /readyz and what needs the models answer 503 until they are loaded."""
+    import threading
+
+    from app.api import app as app_module
+
+    loaded, build = threading.Event(), app_module.build_sensors
+
+    def slow_build(*args: object, **kwargs: object) -> object:
+        assert loaded.wait(30)
+        return build(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(app_module, "build_sensors", slow_build)
+    with TestClient(create_app(settings, start_in_background=True)) as client:
+        assert client.get("/healthz").status_code == 200
+        assert client.get("/readyz").status_code == 503
+        ground = {"scene_graph": scene_graph_dict, "utterance": "the backpack is on the table"}
+        assert client.post("/v1/ground", json=ground).status_code == 503
+        loaded.set()
+        for _ in range(300):
+            if client.get("/readyz").status_code == 200:
+                break
+            threading.Event().wait(0.05)
+        assert client.get("/readyz").json() == {"status": "ready", "grounder": "geometric"}
+        assert client.post("/v1/ground", json=ground).status_code == 200
+
+
 def test_models_lists_grounder_and_proposer(client: TestClient) -> None:
     models = client.get("/v1/models").json()["models"]
     assert [(m["role"], m["name"]) for m in models] == [
