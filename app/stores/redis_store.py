@@ -28,17 +28,20 @@ No lost updates across replicas: an update reads the meta hash, computes the cha
 reads the blocks the delta changes, and commits with one script call (`COMMIT_SCRIPT`) that writes only
 if the session is still at the version it read and no other writer holds the session's lock; else it
 reads again. Every update is then two reads and one write round trip (none but the write from the
-mirror), and one fsync on an `appendfsync always` Redis (a lock taken and released around each update would cost two more writes, each fsynced). A
-writer that keeps losing (a slow utterance among fast observation streams) takes the session's lock (SET
-NX PX with a random token), which makes every other writer's commit fail until it is done. An observation
-batch reads and writes only the vision blocks its voxels fall in.
+mirror), and one fsync on an `appendfsync always` Redis (a lock taken and released around each update
+would cost two more writes, each fsynced). A writer that keeps losing (a slow utterance among fast
+observation streams) takes the session's lock (SET NX PX with a random token), which makes every other
+writer's commit fail until it is done. An observation batch reads and writes only the vision blocks its
+voxels fall in.
 
 The mirror: each store keeps in memory the last state of each session it read in full or committed
-(`app.stores.redis_mirror`), named by its (version, updated_at). A replica that a robot's connection stays with then
-updates without the read (it computes from the mirror and commits on the condition that the stored state
-still has that name; when another replica wrote meanwhile, the commit fails and the update reads), and
-summarises a version it wrote without reading the whole belief back. The mirror is never needed to be
-right: the commit's condition is checked in Redis, and a state is taken from it only under its name.
+(`app.stores.redis_mirror`), named by its (version, updated_at). A replica that a robot's connection stays
+with then updates without the read (it computes from the mirror and commits on the condition that the
+stored state still has that name; when another replica wrote meanwhile, the commit fails and the update
+reads), and summarises a version it wrote without reading the whole belief back. The mirror is never
+needed to be right: the commit's condition is checked in Redis, and a state is taken from it only under
+its name; a change that refuses the mirrored state is refused only once a read shows that Redis holds
+that state.
 An inline change (`Change.inline`: a camera view's batch) from the mirror is computed on the caller's
 event loop and committed through that loop's `redis.asyncio` client: it needs no read, so no worker
 thread; an update that must read runs on one.
@@ -594,7 +597,20 @@ class RedisSessionStore:
     ) -> UpdateResult | None:
         """Read (or take the mirrored state), compute, commit once; None when another writer came first."""
         view = _View.of(session_id, mirrored) if mirrored is not None else self._read_view(session_id)
-        delta = change.compute(view)
+        try:
+            delta = change.compute(view)
+        except Exception:
+            if mirrored is None:
+                raise
+            # A refusal stands only against the stored state: the mirror may be a state that another
+            # replica's writes left behind (a target named there, the session made again for another robot),
+            # and no commit would fail to tell.
+            stored = self._read_view(session_id)
+            if stored.stamp == mirrored.stamp:
+                raise
+            self._mirror.drop(session_id, mirrored.stamp)
+            view, mirrored = stored, None
+            delta = change.compute(view)
         writes = self._writes(view, delta)
         result = delta.result(session_id, view.version + 1, view.grid.n_voxels)
         commit = self._commit_of(session_id, view, token, writes, result, idempotency)
@@ -607,11 +623,21 @@ class RedisSessionStore:
     async def _attempt_on_loop(
         self, session_id: str, change: Change, mirrored: Mirrored, idempotency: Idempotency | None
     ) -> UpdateResult | None:
-        """`_attempt` from the mirrored state, committed through the running event loop's client."""
+        """`_attempt` from the mirrored state, committed through the running event loop's client; None when
+        another writer came first (or the change refused a mirrored state that is no longer stored)."""
         from redis.exceptions import ConnectionError as RedisConnectionError
 
         view = _View.of(session_id, mirrored)
-        delta = change.compute(view)
+        try:
+            delta = change.compute(view)
+        except Exception:
+            # A refusal stands only against the stored state (`_attempt`); else the update reads.
+            version, updated_at = await self._on_loop(
+                "hmget", self._key(session_id, "meta"), ["version", "updated_at"]
+            )
+            if version is not None and (int(version), updated_at) == mirrored.stamp:
+                raise
+            return None
         writes = self._writes(view, delta)
         result = delta.result(session_id, view.version + 1, view.grid.n_voxels)
         commit = self._commit_of(session_id, view, "", writes, result, idempotency)
