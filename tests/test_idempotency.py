@@ -22,6 +22,7 @@ from app.errors import AlreadyApplied
 from app.stores import MemorySessionStore
 from app.stores.base import Idempotency, IdempotencyLog, IdempotencyRecord
 from tests.conftest import load_resource_json, model_free_settings
+from tests.store_ops import StoreOps
 from tests.test_stores import make_session, redis_store, wide_mixture
 
 MSGPACK = {"content-type": "application/msgpack"}
@@ -32,7 +33,7 @@ def client(request: pytest.FixtureRequest) -> Iterator[TestClient]:
     store = (
         MemorySessionStore()
         if request.param == "memory"
-        else redis_store(request.getfixturevalue("redis_url"))
+        else redis_store(request.getfixturevalue("redis_url")).store
     )
     with TestClient(create_app(model_free_settings(), store=store)) as test_client:
         yield test_client
@@ -135,26 +136,30 @@ def test_the_quoted_form_of_a_key_is_the_same_key(client: TestClient) -> None:
 
 def test_keys_survive_reopening_the_log_and_its_snapshots(tmp_path: Path) -> None:
     data = tmp_path / "data"
-    store = MemorySessionStore(data, snapshot_every=3)
+    store = StoreOps(MemorySessionStore(data, snapshot_every=3))
     store.create(make_session("s"))
     rng = np.random.default_rng(0)
     keys = [Idempotency(f"k{i}", f"fp{i}") for i in range(6)]
-    for k in keys[:5]:
-        store.apply_utterance("s", wide_mixture(rng), idempotency=k)  # compactions happen in between
-    store.create(make_session("gone"))
+    for i, k in enumerate(keys[:5]):
+        result = store.utter("s", wide_mixture(rng), idempotency=k)  # compactions happen in between
+        assert result.version == i + 1
+    store.create(make_session("gone", robot_id="robot-2"))
     store.delete("gone", idempotency=keys[5])
     store.close()
-    reopened = MemorySessionStore(data, snapshot_every=3)
-    for k in keys[:5]:
+    reopened = StoreOps(MemorySessionStore(data, snapshot_every=3))
+    for i, k in enumerate(keys[:5]):
         with pytest.raises(AlreadyApplied) as seen:
-            reopened.apply_utterance("s", wide_mixture(rng), idempotency=k)
-        assert seen.value.record.fingerprint == k.fingerprint  # type: ignore[attr-defined]
-    with pytest.raises(AlreadyApplied):
+            reopened.utter("s", wide_mixture(rng), idempotency=k)
+        record = seen.value.record
+        assert isinstance(record, IdempotencyRecord)
+        assert (record.fingerprint, record.version, record.robot_id) == (k.fingerprint, i + 1, "robot-1")
+    with pytest.raises(AlreadyApplied) as seen:
         reopened.delete("gone", idempotency=keys[5])  # the tombstone
+    assert seen.value.record.robot_id == "robot-2"  # type: ignore[attr-defined]  # the deleted session's owner
     assert reopened.get("s").version == 5
     reopened._compact()  # the tombstone is logged again before the old segments go
     reopened.close()
-    again = MemorySessionStore(data)
+    again = StoreOps(MemorySessionStore(data))
     with pytest.raises(AlreadyApplied):
         again.delete("gone", idempotency=keys[5])
     again.close()
@@ -177,16 +182,17 @@ def test_redis_keys_are_bounded_per_session_and_a_keyed_delete_leaves_only_its_o
     store = redis_store(redis_url, idempotency_keys=4)
     store.create(make_session("bounded"))
     for i in range(10):
-        store.apply_detections(
-            "bounded", [0.6], flat_idx=np.array([i]), idempotency=Idempotency(f"k{i}", "fp")
-        )
+        store.detect("bounded", [0.6], flat_idx=np.array([i]), idempotency=Idempotency(f"k{i}", "fp"))
     remembered = store._client.hkeys(store._key("bounded", "idem"))
     assert len(remembered) == 4 and b"k:k9" in remembered
-    with pytest.raises(AlreadyApplied):
-        store.apply_detections("bounded", [0.6], flat_idx=np.array([9]), idempotency=Idempotency("k9", "fp"))
+    with pytest.raises(AlreadyApplied) as seen:
+        store.detect("bounded", [0.6], flat_idx=np.array([9]), idempotency=Idempotency("k9", "fp"))
+    assert seen.value.record.robot_id == "robot-1"  # type: ignore[attr-defined]  # the session's owner
+    assert store.head("bounded").version == 10  # not applied again
     store.delete("bounded", idempotency=Idempotency("bye", "fp"))
     assert store._client.hkeys(store._key("bounded", "idem")) == [b"k:bye"]
     assert 0 < store._client.pttl(store._key("bounded", "idem")) <= 3600 * 1000
-    with pytest.raises(AlreadyApplied):
+    with pytest.raises(AlreadyApplied) as seen:
         store.delete("bounded", idempotency=Idempotency("bye", "fp"))
+    assert seen.value.record.robot_id == "robot-1"  # type: ignore[attr-defined]  # the deleted session's owner
     store.close()

@@ -26,7 +26,7 @@ def test_every_key_of_a_session_is_in_one_slot(redis_cluster_url: str) -> None:
     store = redis_store(redis_cluster_url)
     assert store.clustered
     store.create(make_session("slotted"))
-    store.apply_detections("slotted", [0.7], flat_idx=np.array([3]))
+    store.detect("slotted", [0.7], flat_idx=np.array([3]))
     slots = {store._client.keyslot(store._key("slotted", part)) for part in PARTS}
     assert len(slots) == 1
     stored = [part for part in PARTS if store._client.exists(store._key("slotted", part))]

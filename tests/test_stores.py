@@ -1,7 +1,9 @@
 """Session stores: the same behaviour from the memory store (plain and durable) and the Redis store.
 
-The reference for every update is a local `Session` that applies the same operations directly. The
-Redis tests start a private `redis-server` on a free loopback port and skip only when the binary is absent.
+The stores are called through `tests.store_ops.StoreOps` (each call on an event loop of its own), with the
+changes the service makes (`app.sessions.changes`). The reference for every update is a local `Session`
+that applies the same operations directly. The Redis tests start a private `redis-server` on a free
+loopback port and skip only when the binary is absent.
 """
 
 from __future__ import annotations
@@ -30,10 +32,12 @@ from app.belief.summary import summarize
 from app.errors import Conflict, InvalidInput, NotFound, StoreUnavailable
 from app.grounding.mixture import Gaussian, GaussianMixture
 from app.scene_graph.model import SceneGraph
+from app.sessions import changes
 from app.sim.service import free_port
 from app.stores import MemorySessionStore, SessionStore, open_store
 from app.stores.memory import _HEADER
 from tests.harness import RedisServer
+from tests.store_ops import StoreOps, summary_options
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE_DICT = {
@@ -101,15 +105,15 @@ def random_ops(seed: int, n: int, n_voxels: int) -> list[tuple[str, dict[str, An
     return ops
 
 
-def apply_to_store(store: SessionStore, session_id: str, op: tuple[str, dict[str, Any]]) -> int:
+def apply_to_store(store: StoreOps, session_id: str, op: tuple[str, dict[str, Any]]) -> int:
     kind, args = op
     if kind == "utterance":
-        return store.apply_utterance(session_id, args["mixture"]).version
+        return store.utter(session_id, args["mixture"]).version
     if kind == "labels":
         a = dict(args)
-        return store.apply_observations(session_id, a.pop("labels"), **a).version
+        return store.observe(session_id, a.pop("labels"), **a).version
     a = dict(args)
-    return store.apply_detections(session_id, a.pop("p_target"), **a).version
+    return store.detect(session_id, a.pop("p_target"), **a).version
 
 
 def apply_to_session(session: Session, op: tuple[str, dict[str, Any]]) -> None:
@@ -145,11 +149,17 @@ def assert_unclamped(session: Session) -> None:
 
 
 def redis_store(url: str, **kwargs: Any) -> Any:
+    """A `RedisSessionStore` on `url` with a prefix of its own, called through `StoreOps`."""
     from app.stores.redis_store import RedisSessionStore
 
     kwargs.setdefault("prefix", f"test-{uuid.uuid4().hex[:8]}")
     kwargs.setdefault("block_voxels", 1024)  # several blocks even on the small test grid
-    return RedisSessionStore(url, **kwargs)
+    return StoreOps(RedisSessionStore(url, **kwargs))
+
+
+def memory_store(*args: Any, **kwargs: Any) -> Any:
+    """A `MemorySessionStore(*args, **kwargs)` called through `StoreOps`."""
+    return StoreOps(MemorySessionStore(*args, **kwargs))
 
 
 @pytest.fixture(
@@ -162,9 +172,9 @@ def redis_store(url: str, **kwargs: Any) -> Any:
 )
 def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Any]:
     if request.param == "memory":
-        s: Any = MemorySessionStore()
+        s: Any = memory_store()
     elif request.param == "durable":
-        s = MemorySessionStore(tmp_path / "data", snapshot_every=5)
+        s = memory_store(tmp_path / "data", snapshot_every=5)
     elif request.param == "redis":
         s = redis_store(request.getfixturevalue("redis_url"))
     else:
@@ -204,7 +214,7 @@ def test_round_trip_list_and_delete(store: Any) -> None:
     for call in (
         lambda: store.get("s-1"),
         lambda: store.delete("s-1"),
-        lambda: store.apply_utterance("s-1", wide_mixture(np.random.default_rng(1))),
+        lambda: store.utter("s-1", wide_mixture(np.random.default_rng(1))),
     ):
         with pytest.raises(NotFound):
             call()
@@ -222,7 +232,7 @@ def test_updates_match_a_local_reference(store: Any) -> None:
         apply_to_session(reference, op)
     points = reference.grid.centers(np.array([3, 4, 5]))
     points = np.vstack([points, [[50.0, 0.0, 0.0]]])
-    result = store.apply_observations(session.id, ["Backpacks", "table", "rucksack", "table"], points=points)
+    result = store.observe(session.id, ["Backpacks", "table", "rucksack", "table"], points=points)
     assert (result.voxels_updated, result.voxels_outside) == (3, 1)
     reference.belief.apply_increments(
         reference.observation_batch(["Backpacks", "table", "rucksack", "table"], points=points)
@@ -234,7 +244,7 @@ def test_updates_match_a_local_reference(store: Any) -> None:
     got = store.get(session.id)
     assert_same_belief(got, reference)
     assert got.scene_graph == moved
-    layers = store.read_layers(session.id)
+    layers = store.layers(session.id)
     np.testing.assert_array_equal(layers.vis, reference.belief.vis)
     assert layers.version == reference.version
     expected = summarize(reference.grid, reference.belief.lang, reference.belief.vis, moved)
@@ -246,11 +256,11 @@ def test_rejected_updates_change_nothing(store: Any) -> None:
     store.create(session)
     bad_mixture = GaussianMixture(np.array([1.0]), np.array([[np.nan, 0.0, 0.0]]), np.eye(3)[None])
     with pytest.raises(InvalidInput):
-        store.apply_utterance(session.id, bad_mixture)
+        store.utter(session.id, bad_mixture)
     with pytest.raises(InvalidInput):
-        store.apply_observations(session.id, [7], flat_idx=np.array([0]))  # id 7 is not in the label map
+        store.observe(session.id, [7], flat_idx=np.array([0]))  # id 7 is not in the label map
     with pytest.raises(InvalidInput):
-        store.apply_detections(session.id, [0.5], flat_idx=np.array([session.grid.n_voxels]))
+        store.detect(session.id, [0.5], flat_idx=np.array([session.grid.n_voxels]))
     got = store.get(session.id)
     assert got.version == 0 and not got.belief.lang.any() and not got.belief.vis.any()
 
@@ -261,9 +271,9 @@ def test_voxel_coordinates_equal_flat_indices_and_those_outside_the_grid_are_cou
     nx, ny, nz = session.grid.shape
     flat = np.array([0, 5, session.grid.n_voxels - 1])
     ijk = np.vstack([session.grid.flat_to_ijk(flat), [[-1, 0, 0], [nx, 0, 0], [0, ny, nz]]])
-    result = store.apply_observations(session.id, np.ones(len(ijk), dtype=np.int64), voxels=ijk)
+    result = store.observe(session.id, np.ones(len(ijk), dtype=np.int64), voxels=ijk)
     assert (result.voxels_updated, result.voxels_outside) == (3, 3)
-    detections = store.apply_detections(session.id, np.full(len(ijk), 0.8), voxels=ijk)
+    detections = store.detect(session.id, np.full(len(ijk), 0.8), voxels=ijk)
     assert (detections.voxels_updated, detections.voxels_outside) == (3, 3)
     for batch in (
         session.observation_batch(np.ones(3, dtype=np.int64), flat_idx=flat),
@@ -272,39 +282,61 @@ def test_voxel_coordinates_equal_flat_indices_and_those_outside_the_grid_are_cou
         session.belief.apply_increments(batch)
     assert_same_belief(store.get(session.id), session)
     with pytest.raises(InvalidInput, match="voxels"):
-        store.apply_detections(session.id, [0.5], voxels=np.array([[0.5, 0.0, 0.0]]))  # not integers
+        store.detect(session.id, [0.5], voxels=np.array([[0.5, 0.0, 0.0]]))  # not integers
     with pytest.raises(InvalidInput, match="exactly one"):
-        store.apply_detections(session.id, [0.5], voxels=ijk[:1], flat_idx=flat[:1])
-    assert store.info(session.id).version == 2
+        store.detect(session.id, [0.5], voxels=ijk[:1], flat_idx=flat[:1])
+    assert store.head(session.id).version == 2
 
 
 class Refused(Exception):
     pass
 
 
+class Writers:
+    """A `Caller` (`app.sessions.changes.Caller`) that may write the sessions of the robots it names (all of
+    them when it names none) and records whose sessions it was asked about."""
+
+    def __init__(self, *robots: str) -> None:
+        self.robots = set(robots)
+        self.asked: list[str] = []
+
+    def can_read(self, robot_id: str) -> bool:
+        return not self.robots or robot_id in self.robots
+
+    def require_read(self, robot_id: str) -> None:
+        if not self.can_read(robot_id):
+            raise Refused(robot_id)
+
+    def require_write(self, robot_id: str) -> None:
+        self.asked.append(robot_id)
+        self.require_read(robot_id)
+
+
 def test_an_update_is_authorized_against_its_owner_before_anything_changes(store: Any) -> None:
     session = make_session(robot_id="robot-7")
     store.create(session)
-    asked: list[str] = []
-
-    def only_robot_1(robot_id: str) -> None:
-        asked.append(robot_id)
-        if robot_id != "robot-1":
-            raise Refused(robot_id)
-
+    only_robot_1 = Writers("robot-1")
     ijk = session.grid.flat_to_ijk(np.array([3, 4]))
     with pytest.raises(Refused):
-        store.apply_observations(session.id, [1, 1], voxels=ijk, authorize=only_robot_1)
+        store.observe(session.id, [1, 1], voxels=ijk, caller=only_robot_1)
     with pytest.raises(Refused):
-        store.apply_detections(session.id, [0.9, 0.9], voxels=ijk, authorize=only_robot_1)
+        store.detect(session.id, [0.9, 0.9], voxels=ijk, caller=only_robot_1)
     with pytest.raises(Refused):  # refused before the labels are looked at (7 is not in the label map)
-        store.apply_observations(session.id, [7, 7], voxels=ijk, authorize=only_robot_1)
-    assert asked == ["robot-7"] * 3
+        store.observe(session.id, [7, 7], voxels=ijk, caller=only_robot_1)
+    with pytest.raises(Refused):
+        store.utter(session.id, wide_mixture(np.random.default_rng(2)), caller=only_robot_1)
+    with pytest.raises(Refused):
+        store.replace_scene_graph(session.id, SCENE, caller=only_robot_1)
+    with pytest.raises(Refused):  # refused before the label is looked at ("sofa" is not in the label map)
+        store.set_target(session.id, "sofa", caller=only_robot_1)
+    assert only_robot_1.asked == ["robot-7"] * 6
     got = store.get(session.id)
-    assert got.version == 0 and not got.belief.vis.any()
-    assert store.apply_detections(session.id, [0.9, 0.9], voxels=ijk, authorize=asked.append).version == 1
+    assert got.version == 0 and not got.belief.vis.any() and not got.belief.lang.any()
+    anyone = Writers()
+    assert store.detect(session.id, [0.9, 0.9], voxels=ijk, caller=anyone).version == 1
+    assert anyone.asked == ["robot-7"]
     with pytest.raises(NotFound):
-        store.apply_detections("no-such-session", [0.9], voxels=ijk[:1], authorize=only_robot_1)
+        store.detect("no-such-session", [0.9], voxels=ijk[:1], caller=only_robot_1)
 
 
 def test_concurrent_updates_on_one_session_equal_the_sequential_sum(store: Any) -> None:
@@ -349,22 +381,27 @@ class FakeClock:
 def test_memory_sessions_expire_after_idle_ttl(tmp_path: Path, durable: bool) -> None:
     clock = FakeClock()
     data_dir = tmp_path / "data" if durable else None
-    store = MemorySessionStore(data_dir, ttl_s=10.0, clock=clock)
+    store = memory_store(data_dir, ttl_s=10.0, clock=clock)
     session = make_session("idle")
     store.create(session)
     clock.now += 8
-    store.apply_detections("idle", [0.6], flat_idx=np.array([0]))  # a write extends the lifetime
+    store.detect("idle", [0.6], flat_idx=np.array([0]))  # a write extends the lifetime
     clock.now += 8
     assert store.get("idle").version == 1  # reads work but do not extend
     clock.now += 3
     with pytest.raises(NotFound):
         store.get("idle")
     assert store.list() == []
+    assert store.purge() == 0  # the read removed it already
     store.create(make_session("idle"))  # the id is free again
+    clock.now += 11
+    assert store.purge() == 1
+    with pytest.raises(NotFound):
+        store.head("idle")
     store.close()
     if durable:
         clock.now += 20
-        reopened = MemorySessionStore(data_dir, ttl_s=10.0, clock=clock)
+        reopened = memory_store(data_dir, ttl_s=10.0, clock=clock)
         assert reopened.list() == []
         reopened.close()
 
@@ -375,7 +412,7 @@ def test_redis_sessions_expire_after_idle_ttl(redis_url: str) -> None:
     store.create(make_session("short"))
     store.create(make_session("kept"))
     time.sleep(0.4)
-    store.apply_detections("kept", [0.6], flat_idx=np.array([0]))
+    store.detect("kept", [0.6], flat_idx=np.array([0]))
     time.sleep(0.4)
     with pytest.raises(NotFound):
         store.get("short")
@@ -387,7 +424,7 @@ def test_redis_sessions_expire_after_idle_ttl(redis_url: str) -> None:
 # -- durability of the memory store ---------------------------------------------------------------------
 
 
-def durable_state(store: MemorySessionStore) -> dict[str, Session]:
+def durable_state(store: StoreOps) -> dict[str, Session]:
     return {info.id: store.get(info.id) for info in store.list()}
 
 
@@ -398,22 +435,22 @@ def assert_same_sessions(got: dict[str, Session], expected: dict[str, Session]) 
         assert got[sid].meta() == session.meta()
 
 
-def reopen(data_dir: Path, **kwargs: Any) -> MemorySessionStore:
+def reopen(data_dir: Path, **kwargs: Any) -> Any:
     """Open the directory again once the caller dropped its store unclosed (as a crash would)."""
     gc.collect()  # the dropped store's LOCK file handle goes with it
-    return MemorySessionStore(data_dir, **kwargs)
+    return memory_store(data_dir, **kwargs)
 
 
 def test_reopen_without_close_gives_the_identical_belief(tmp_path: Path) -> None:
     data_dir = tmp_path / "data"
-    store = MemorySessionStore(data_dir, snapshot_every=10_000)
+    store = memory_store(data_dir, snapshot_every=10_000)
     a, b = make_session("a"), make_session("b", robot_id="robot-2")
     store.create(a)
     store.create(b)
     for op in random_ops(3, 6, a.grid.n_voxels):
         apply_to_store(store, "a", op)
     store.replace_scene_graph("b", SceneGraph.model_validate({**SCENE_DICT, "objects": []}))
-    store.apply_utterance("b", wide_mixture(np.random.default_rng(5)))
+    store.utter("b", wide_mixture(np.random.default_rng(5)))
     before = durable_state(store)
     del store
     store = reopen(data_dir)
@@ -424,7 +461,7 @@ def test_reopen_without_close_gives_the_identical_belief(tmp_path: Path) -> None
 @pytest.mark.parametrize("tail", ["short header", "short payload", "bad crc"])
 def test_a_torn_last_record_is_ignored(tmp_path: Path, tail: str) -> None:
     data_dir = tmp_path / "data"
-    store = MemorySessionStore(data_dir, snapshot_every=10_000)
+    store = memory_store(data_dir, snapshot_every=10_000)
     store.create(make_session("a"))
     for op in random_ops(4, 5, store.get("a").grid.n_voxels):
         apply_to_store(store, "a", op)
@@ -440,7 +477,7 @@ def test_a_torn_last_record_is_ignored(tmp_path: Path, tail: str) -> None:
     del store
     store = reopen(data_dir)
     assert_same_sessions(durable_state(store), before)
-    store.apply_detections("a", [0.9], flat_idx=np.array([7]))  # appends after the cut-off record
+    store.detect("a", [0.9], flat_idx=np.array([7]))  # appends after the cut-off record
     after = durable_state(store)
     del store
     store = reopen(data_dir)
@@ -450,7 +487,7 @@ def test_a_torn_last_record_is_ignored(tmp_path: Path, tail: str) -> None:
 
 def test_snapshots_and_log_replay(tmp_path: Path) -> None:
     data_dir = tmp_path / "data"
-    store = MemorySessionStore(data_dir, snapshot_every=3)
+    store = memory_store(data_dir, snapshot_every=3)
     store.create(make_session("a"))
     store.create(make_session("gone"))
     ops = random_ops(6, 10, store.get("a").grid.n_voxels)
@@ -458,7 +495,7 @@ def test_snapshots_and_log_replay(tmp_path: Path) -> None:
         apply_to_store(store, "a", op)
     store.delete("gone")
     store.create(make_session("gone"))  # the same id again, a new session
-    store.apply_detections("gone", [0.8], flat_idx=np.array([3]))
+    store.detect("gone", [0.8], flat_idx=np.array([3]))
     assert (data_dir / "sessions" / "a.snap").exists()
     assert len(list(data_dir.glob("wal-*.log"))) <= 2  # compaction dropped the older segments
     before = durable_state(store)
@@ -471,7 +508,7 @@ def test_snapshots_and_log_replay(tmp_path: Path) -> None:
 
 def test_a_crash_between_snapshot_and_log_deletion_does_not_double_apply(tmp_path: Path) -> None:
     data_dir = tmp_path / "data"
-    store = MemorySessionStore(data_dir, snapshot_every=10_000)
+    store = memory_store(data_dir, snapshot_every=10_000)
     store.create(make_session("a"))
     ops = random_ops(7, 8, store.get("a").grid.n_voxels)
     for op in ops[:5]:
@@ -498,23 +535,29 @@ def test_a_data_directory_serves_one_store_at_a_time(tmp_path: Path) -> None:
 
 
 CRASHING_WRITER = """
-import json, sys
+import asyncio, json, sys
 import numpy as np
 from app.belief.session import new_session
 from app.scene_graph.model import SceneGraph
+from app.sessions import changes
 from app.stores import MemorySessionStore
 
-store = MemorySessionStore(sys.argv[1], snapshot_every=7)
-scene = SceneGraph.model_validate(json.loads(sys.argv[2]))
-session = new_session("robot", scene, "backpack", label_map={0: "floor", 1: "backpack"}, session_id="crash")
-store.create(session)
-k = 0
-while True:
-    k += 1
-    rng = np.random.default_rng(k)
-    labels, idx = rng.integers(0, 2, 400), rng.integers(0, session.grid.n_voxels, 400)
-    result = store.apply_observations("crash", labels, flat_idx=idx)
-    print("ack", result.version, flush=True)
+async def main():
+    store = MemorySessionStore(sys.argv[1], snapshot_every=7)
+    scene = SceneGraph.model_validate(json.loads(sys.argv[2]))
+    label_map = {0: "floor", 1: "backpack"}
+    session = new_session("robot", scene, "backpack", label_map=label_map, session_id="crash")
+    await store.create(session)
+    k = 0
+    while True:
+        k += 1
+        rng = np.random.default_rng(k)
+        labels, idx = rng.integers(0, 2, 400), rng.integers(0, session.grid.n_voxels, 400)
+        change = changes.labels(labels, flat_idx=idx, max_voxels=400, inline=True)
+        result = await store.update("crash", change)
+        print("ack", result.version, flush=True)
+
+asyncio.run(main())
 """
 
 
@@ -538,7 +581,7 @@ def test_kill_9_loses_no_acknowledged_update(tmp_path: Path) -> None:
         proc.wait(timeout=30)
         proc.stdout.close()
     assert acked >= 25, "the writer died before acknowledging enough updates"
-    store = MemorySessionStore(data_dir)
+    store = memory_store(data_dir)
     got = store.get("crash")
     assert got.version >= acked  # it may hold one more update that was logged but not yet acknowledged
     reference = new_session(
@@ -594,7 +637,7 @@ def test_two_replicas_updating_one_session_equal_the_sequential_sum(redis_url: s
 def test_replicas_share_each_version_summary_and_never_serve_a_stale_one(
     redis_url: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import app.stores.redis_store as redis_store_module
+    import app.belief.session as session_module
 
     calls: list[int] = []
 
@@ -602,7 +645,7 @@ def test_replicas_share_each_version_summary_and_never_serve_a_stale_one(
         calls.append(1)
         return summarize(*args, **kwargs)
 
-    monkeypatch.setattr(redis_store_module, "summarize", counting_summarize)
+    monkeypatch.setattr(session_module, "summarize", counting_summarize)  # what `Session.summary` calls
     first = redis_store(redis_url)
     second = redis_store(redis_url, prefix=first.prefix)
     session = make_session()
@@ -615,6 +658,8 @@ def test_replicas_share_each_version_summary_and_never_serve_a_stale_one(
             summarize(expected.grid, expected.belief.lang, expected.belief.vis, SCENE, top_k=3),
             version=expected.version,
         )
+        for reader in (first, second):  # the last version's entry is not this version's summary
+            assert reader.run(reader.summary_get(session.id, expected.version, summary_options(3))) is None
         replica = (first, second)[int(rng.integers(0, 2))]
         assert replica.summary(session.id, top_k=3) == reference  # computed and stored
         assert second.summary(session.id, top_k=3) == reference  # read back, not recomputed
@@ -634,10 +679,10 @@ def test_an_observation_batch_writes_only_the_blocks_it_touches(redis_url: str) 
     session = make_session()
     store.create(session)
     vis_key = store._key(session.id, "vis")
-    store.apply_observations(session.id, [1, 0], flat_idx=np.array([5, 1030]))
+    store.observe(session.id, [1, 0], flat_idx=np.array([5, 1030]))
     assert sorted(int(k) for k in store._client.hkeys(vis_key)) == [0, 1]
     before = store._client.hget(vis_key, "0")
-    store.apply_observations(session.id, [1], flat_idx=np.array([3 * 1024 + 2]))
+    store.observe(session.id, [1], flat_idx=np.array([3 * 1024 + 2]))
     assert sorted(int(k) for k in store._client.hkeys(vis_key)) == [0, 1, 3]
     assert store._client.hget(vis_key, "0") == before
     store.close()
@@ -670,25 +715,24 @@ def test_a_session_lock_held_elsewhere_makes_updates_wait_then_give_up(redis_url
     store.create(session)
     store._client.set(store._key(session.id, "lock"), "another-replica", px=400)
     with pytest.raises(StoreUnavailable):
-        store.apply_detections(session.id, [0.9], flat_idx=np.array([0]))
+        store.detect(session.id, [0.9], flat_idx=np.array([0]))
     time.sleep(0.3)  # the other holder's lock expires
-    assert store.apply_detections(session.id, [0.9], flat_idx=np.array([0])).version == 1
+    assert store.detect(session.id, [0.9], flat_idx=np.array([0])).version == 1
     store.close()
 
 
 @pytest.mark.redis
 def test_a_lock_left_by_a_killed_holder_delays_writers_only_by_its_short_ttl(redis_url: str) -> None:
     """A replica killed mid-update (kill -9) leaves its lock: it lasts the lock's ttl (3 s; the old 30 s made
-    every write wait its full 10 s and give up), since live holders renew theirs."""
+    every write wait its full 10 s and give up), since live holders renew theirs. A writer that waits for a
+    lock at most a second longer than that ttl gets it."""
     from app.stores.redis_store import DEFAULT_LOCK_TTL_S
 
-    store = redis_store(redis_url)
+    store = redis_store(redis_url, lock_wait_s=DEFAULT_LOCK_TTL_S + 1.0)
     session = make_session()
     store.create(session)
     store._client.set(store._key(session.id, "lock"), "a-killed-replica", px=int(DEFAULT_LOCK_TTL_S * 1000))
-    started = time.monotonic()
-    assert store.apply_detections(session.id, [0.9], flat_idx=np.array([0])).version == 1
-    assert time.monotonic() - started <= DEFAULT_LOCK_TTL_S + 1.0
+    assert store.detect(session.id, [0.9], flat_idx=np.array([0])).version == 1  # else StoreUnavailable
     store.close()
 
 
@@ -701,10 +745,8 @@ def test_a_live_lock_holder_keeps_its_lock_past_the_ttl(redis_url: str) -> None:
     with holder._session_lock("held") as token:
         time.sleep(1.0)  # three ttls of work
         assert holder._client.get(holder._key("held", "lock")) == token.encode()
-        with pytest.raises(StoreUnavailable):
-            other._update(
-                "held", lambda meta, _: ({}, meta.new_version)
-            )  # a writer that takes the lock waits
+        with pytest.raises(StoreUnavailable):  # a writer that takes the lock waits, then gives up
+            other.detect("held", [0.9], flat_idx=np.array([0]))
     assert holder._client.get(holder._key("held", "lock")) is None  # released
     holder.close()
     other.close()
@@ -769,12 +811,12 @@ def test_a_session_made_again_under_its_id_is_not_mistaken_for_the_mirrored_one(
 ) -> None:
     first, second = replicas
     first.create(make_session("again"))
-    first.apply_detections("again", [0.9], flat_idx=np.array([7]))  # the first mirrors version 1
+    first.detect("again", [0.9], flat_idx=np.array([7]))  # the first mirrors version 1
     second.delete("again")
     new = make_session("again")
     second.create(new)
-    second.apply_detections("again", [0.2], flat_idx=np.array([3]))  # version 1 again, another state
-    first.apply_detections("again", [0.6], flat_idx=np.array([3]))
+    second.detect("again", [0.2], flat_idx=np.array([3]))  # version 1 again, another state
+    first.detect("again", [0.6], flat_idx=np.array([3]))
     for p_target in (0.2, 0.6):
         new.belief.apply_increments(new.detection_batch([p_target], flat_idx=np.array([3])))
     assert_same_belief(first.get("again"), new)
@@ -788,20 +830,51 @@ def test_a_session_made_again_for_another_robot_is_authorized_as_that_robot(
     first, second = replicas
     first.create(make_session("reused", robot_id="robot-1"))
     ijk = np.array([[0, 0, 0]])
-    first.apply_detections("reused", [0.9], voxels=ijk)  # the first mirrors robot-1's session
+    first.detect("reused", [0.9], voxels=ijk)  # the first mirrors robot-1's session
     second.delete("reused")
     second.create(make_session("reused", robot_id="robot-2"))
-    asked: list[str] = []
-
-    def only_robot_1(robot_id: str) -> None:
-        asked.append(robot_id)
-        if robot_id != "robot-1":
-            raise Refused(robot_id)
-
+    only_robot_1 = Writers("robot-1")
     with pytest.raises(Refused):
-        first.apply_detections("reused", [0.9], voxels=ijk, authorize=only_robot_1)
-    assert asked[-1] == "robot-2"  # the owner of the state the commit would have been made on
+        first.detect("reused", [0.9], voxels=ijk, caller=only_robot_1)
+    assert only_robot_1.asked[-1] == "robot-2"  # the owner of the state the commit would have been made on
     assert second.get("reused").version == 0
+
+
+@pytest.mark.redis
+def test_a_change_is_never_refused_on_the_strength_of_a_stale_mirror(replicas: tuple[Any, Any]) -> None:
+    """A change that refuses the mirrored state is refused only if the stored state is that state: a mirror
+    left behind by another replica's writes (a target named there, the session made again for another
+    robot) is checked against Redis first, on the event loop's path and on the worker thread's alike."""
+    first, second = replicas
+    session = new_session("robot-1", SCENE, "", label_map=LABELS, session_id="named-elsewhere")
+    first.create(session)
+    first.detect(session.id, [0.8], flat_idx=np.array([3]))  # the first mirrors it, its target unknown
+    with pytest.raises(Conflict):  # refused from a current mirror, which stays
+        first.observe(session.id, [1], flat_idx=np.array([3]))
+    assert first._mirror.get(session.id) is not None
+    assert second.set_target(session.id, "backpack") == 2  # the first's mirror is now stale
+    assert first.observe(session.id, [1, 0], flat_idx=np.array([3, 4])).version == 3  # inline, on the loop
+    reference = session.copy()
+    reference.belief.apply_increments(reference.detection_batch([0.8], flat_idx=np.array([3])))
+    reference.set_target_label("backpack")
+    reference.belief.version += 1
+    reference.belief.apply_increments(reference.observation_batch([1, 0], flat_idx=np.array([3, 4])))
+    assert_same_belief(second.get(session.id), reference)
+
+    first.get(session.id)  # mirrored again (robot-1's)
+    second.delete(session.id)
+    second.create(make_session(session.id, robot_id="robot-2"))
+    robot_2 = Writers("robot-2")
+    ijk = np.array([[0, 0, 0]])
+    assert first.detect(session.id, [0.9], voxels=ijk, caller=robot_2).version == 1  # inline
+    first.get(session.id)  # mirrored again (robot-2's)
+    second.delete(session.id)
+    second.create(make_session(session.id, robot_id="robot-3"))
+    robot_3 = Writers("robot-3")
+    mixture = wide_mixture(np.random.default_rng(8))
+    assert first.utter(session.id, mixture, caller=robot_3).version == 1  # not inline: a worker thread
+    assert first.detect(session.id, [0.9], voxels=ijk, caller=robot_3, inline=False).version == 2
+    assert robot_3.asked[-2:] == ["robot-3", "robot-3"]
 
 
 @pytest.mark.redis
@@ -811,14 +884,14 @@ def test_voxel_coordinates_read_only_their_blocks_without_a_mirror(redis_url: st
     store.create(session)
     far = session.grid.flat_to_ijk(np.array([0, session.grid.n_voxels - 1]))
     fresh = redis_store(redis_url, prefix=store.prefix)  # no mirror, no grid known: the update reads
-    commands = redis_commands(fresh, lambda: fresh.apply_detections(session.id, [0.9, 0.9], voxels=far))
+    commands = redis_commands(fresh, lambda: fresh.detect(session.id, [0.9, 0.9], voxels=far))
     reads = _layer_reads(commands)
     last_block = str((session.grid.n_voxels - 1) // 1024)
     assert reads and all(c.split()[2:] in (["0", last_block], ["0"], [last_block]) for c in reads), reads
-    commands = redis_commands(fresh, lambda: fresh.apply_detections(session.id, [0.9], voxels=far[:1]))
+    commands = redis_commands(fresh, lambda: fresh.detect(session.id, [0.9], voxels=far[:1]))
     assert _layer_reads(commands)  # still no mirror: only a full read makes one
     fresh.get(session.id)
-    commands = redis_commands(fresh, lambda: fresh.apply_detections(session.id, [0.9], voxels=far[:1]))
+    commands = redis_commands(fresh, lambda: fresh.detect(session.id, [0.9], voxels=far[:1]))
     assert not _layer_reads(commands)
     both = np.array([0, session.grid.n_voxels - 1])
     for flat in (both, both[:1], both[:1]):
@@ -832,36 +905,93 @@ def test_voxel_coordinates_read_only_their_blocks_without_a_mirror(redis_url: st
 def test_an_event_loop_update_takes_a_worker_thread_only_when_it_must_read(
     replicas: tuple[Any, Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    """`RedisSessionStore.update`: an inline change (an observation batch) from the mirror is computed on the
+    event loop and committed with the loop's client; otherwise it runs on a worker thread."""
     first, second = replicas
     session = make_session()
     first.create(session)
-    threads: list[Any] = []
-    to_thread = asyncio.to_thread
-
-    async def counted(func: Any, *args: Any, **kwargs: Any) -> Any:
-        threads.append(func)
-        return await to_thread(func, *args, **kwargs)
-
-    monkeypatch.setattr(asyncio, "to_thread", counted)
+    threads = count_worker_threads(monkeypatch)
     ijk = session.grid.flat_to_ijk(np.array([2, session.grid.n_voxels - 2]))
 
-    def detect(store: Any, p: float) -> list[str]:
+    def detect(store: Any, p: float, inline: bool = True) -> tuple[list[str], int]:
+        """The commands of one update of `store` and the worker threads it took."""
         session.belief.apply_increments(session.detection_batch([p, p], voxels=ijk))
-        return redis_commands(
-            store, lambda: asyncio.run(store.apply_detections_async(session.id, [p, p], voxels=ijk))
-        )
+        before = len(threads)
+        change = lambda: store.detect(session.id, [p, p], voxels=ijk, inline=inline)  # noqa: E731
+        commands = redis_commands(store, change, session.id)
+        return commands, len(threads) - before
 
-    assert not _layer_reads(detect(first, 0.8)) and not threads  # from the mirror made by create
-    second.apply_detections(session.id, [0.3], voxels=ijk[:1])  # the first's mirror is now stale
+    commands, taken = detect(first, 0.8)
+    assert not _layer_reads(commands) and taken == 0  # from the mirror made by create
+    second.detect(session.id, [0.3], voxels=ijk[:1])  # the first's mirror is now stale
     session.belief.apply_increments(session.detection_batch([0.3], voxels=ijk[:1]))
-    commands = detect(first, 0.6)  # its commit failed: it read, on a thread
-    assert _layer_reads(commands) and len(threads) == 1
-    # ... the blocks with the meta hash, in one transaction: the grid was known from the stale mirror
-    verbs = [c.split()[0] for c in commands]
-    assert commands.index(_layer_reads(commands)[0]) < verbs.index("EXEC"), commands
+    commands, taken = detect(first, 0.6)  # its commit failed: it read, on a thread
+    assert _layer_reads(commands) and taken == 1
+    # ... the meta hash, then only the vision blocks the batch touches
+    last_block = str((session.grid.n_voxels - 2) // 1024)
+    assert all(c.split()[2:] == ["0", last_block] for c in _layer_reads(commands)), commands
     first.get(session.id)  # a full read mirrors the session again
-    assert not _layer_reads(detect(first, 0.7)) and len(threads) == 1
+    commands, taken = detect(first, 0.7)
+    assert not _layer_reads(commands) and taken == 0
+    commands, taken = detect(first, 0.5, inline=False)  # not inline: from the mirror, on a worker thread
+    assert not _layer_reads(commands) and taken == 1
     assert_same_belief(second.get(session.id), session)
+
+
+def count_worker_threads(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
+    """The functions the stores run on worker threads (`anyio.to_thread.run_sync`) from now on."""
+    import anyio.to_thread
+
+    calls: list[Any] = []
+    run_sync = anyio.to_thread.run_sync
+
+    async def counted(func: Any, *args: Any, **kwargs: Any) -> Any:
+        calls.append(func)
+        return await run_sync(func, *args, **kwargs)
+
+    monkeypatch.setattr(anyio.to_thread, "run_sync", counted)
+    return calls
+
+
+@pytest.mark.parametrize("durable", [False, True])
+def test_a_memory_store_update_takes_a_worker_thread_only_when_it_must_wait(
+    tmp_path: Path, durable: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`MemorySessionStore.update`: an inline change of a store without a log runs on the event loop when
+    its session's lock is free; otherwise (a log to append to, a change that is not inline, a lock held
+    elsewhere) it runs on a worker thread."""
+    store = memory_store(tmp_path / "data" if durable else None)
+    session = make_session()
+    store.create(session)
+    threads = count_worker_threads(monkeypatch)
+
+    def detect(p: float, inline: bool) -> int:
+        """The worker threads one update took."""
+        before = len(threads)
+        result = store.detect(session.id, [p], flat_idx=np.array([2]), inline=inline)
+        session.belief.apply_increments(session.detection_batch([p], flat_idx=np.array([2])))
+        assert result.version == session.version
+        return len(threads) - before
+
+    assert detect(0.8, inline=True) == (1 if durable else 0)
+    assert detect(0.6, inline=False) == 1
+    entry = store._entries[session.id]
+    before = len(threads)
+    results: list[Any] = []
+    with entry.lock:  # another update holds the session
+        writer = threading.Thread(
+            target=lambda: results.append(
+                store.detect(session.id, [0.7], flat_idx=np.array([2]), inline=True)
+            )
+        )
+        writer.start()
+        while len(threads) == before and writer.is_alive():  # it waits for the lock on a worker thread
+            time.sleep(0.005)
+        assert len(threads) == before + 1
+    writer.join()
+    session.belief.apply_increments(session.detection_batch([0.7], flat_idx=np.array([2])))
+    assert results[0].version == session.version == 3
+    assert_same_belief(store.get(session.id), session)
 
 
 @pytest.mark.redis
@@ -874,7 +1004,7 @@ def test_an_event_loop_update_with_redis_down_raises_store_unavailable() -> None
         store.create(session)  # mirrored: the update would need no read
         server.stop()
         with pytest.raises(StoreUnavailable):
-            asyncio.run(store.apply_detections_async(session.id, [0.9], voxels=np.array([[0, 0, 0]])))
+            store.detect(session.id, [0.9], voxels=np.array([[0, 0, 0]]), inline=True)  # on the loop
     finally:
         store.close()
         server.close()
@@ -888,19 +1018,19 @@ def test_event_loop_calls_after_a_redis_restart_reconnect_and_apply_each_update_
     session = make_session()
     store.create(session)
     ijk = session.grid.flat_to_ijk(np.arange(8).reshape(-1, 1)[:, 0])
+    raw = store.store  # one event loop for all the calls below
+
+    def batch(i: int) -> Any:
+        return changes.detections(np.array([0.7]), voxels=ijk[i : i + 1], max_voxels=1, inline=True)
 
     async def run() -> list[int]:
         # Several pooled connections on this loop, then Redis restarts under them (its AOF keeps the data).
-        await asyncio.gather(*(store.owner_and_version(session.id) for _ in range(4)))
-        await asyncio.gather(
-            *(store.apply_detections_async(session.id, [0.7], voxels=ijk[i : i + 1]) for i in range(4))
-        )
+        await asyncio.gather(*(raw.head(session.id) for _ in range(4)))
+        await asyncio.gather(*(raw.update(session.id, batch(i)) for i in range(4)))
         await asyncio.to_thread(server.restart)
-        versions = [(await store.owner_and_version(session.id))[1] for _ in range(4)]
+        versions = [(await raw.head(session.id)).version for _ in range(4)]
         for i in range(4, 8):
-            versions.append(
-                (await store.apply_detections_async(session.id, [0.7], voxels=ijk[i : i + 1])).version
-            )
+            versions.append((await raw.update(session.id, batch(i))).version)
         return versions
 
     try:
@@ -917,18 +1047,21 @@ def test_event_loop_calls_after_a_redis_restart_reconnect_and_apply_each_update_
 def test_a_commit_sent_again_is_told_it_landed_and_applies_once(redis_url: str) -> None:
     """A commit whose reply was lost is sent again (by redis-py, or after a dropped connection), even after
     another writer committed on top of it: its record says it landed, and nothing is applied twice."""
-    from app.stores.redis_store import _Snapshot
+    from app.stores.redis_store import _View
 
     store = redis_store(redis_url)
     session = make_session("resent")
     store.create(session)
-    change, _, _ = store._detections("resent", np.array([0.9]), flat_idx=np.array([0]))
+    change = changes.detections(np.array([0.9]), flat_idx=np.array([0]), max_voxels=1)
     mirrored = store._mirror.get("resent")
-    writes, result = change(_Snapshot.of(mirrored), [])
-    commit = store._commit_of("resent", mirrored.stamp, mirrored.static, "", writes, result, None)
+    view = _View.of("resent", mirrored)  # what `update` computes from, as `_attempt` does
+    delta = change.compute(view)
+    writes = store._writes(view, delta)
+    result = delta.result("resent", view.version + 1, view.grid.n_voxels)
+    commit = store._commit_of("resent", view, "", writes, result, None)
     first = store._script("commit")(keys=commit.keys, args=commit.args)
     assert store._committed("resent", first, commit, mirrored)
-    store.apply_detections("resent", [0.2], flat_idx=np.array([1]))  # another commit on top
+    store.detect("resent", [0.2], flat_idx=np.array([1]))  # another commit on top
     again = store._script("commit")(keys=commit.keys, args=commit.args)
     assert int(again[0]) == -3 and store._committed("resent", again, commit, None)  # its own record
     for p, i in ((0.9, 0), (0.2, 1)):
@@ -938,13 +1071,13 @@ def test_a_commit_sent_again_is_told_it_landed_and_applies_once(redis_url: str) 
 
 
 def test_the_mirror_drops_a_session_only_under_the_name_it_was_used_by() -> None:
-    from app.stores.redis_store import _Mirror, _Mirrored
+    from app.stores.redis_mirror import Mirror, Mirrored
 
     def entry(version: int) -> Any:
         layer = np.zeros(4, dtype=np.float32)
-        return _Mirrored((version, b"t"), {}, np.zeros(0, np.int64), 4, b"{}", layer, layer.copy())
+        return Mirrored((version, b"t"), {}, np.zeros(0, np.int64), 4, b"{}", layer, layer.copy())
 
-    mirror = _Mirror(max_bytes=1 << 20)
+    mirror = Mirror(max_bytes=1 << 20)
     mirror.put("s", entry(2))  # another thread's commit replaced the entry an update had used (version 1)
     mirror.drop("s", (1, b"t"))
     assert mirror.get("s") is not None and mirror.get("s", (2, b"t")) is not None
@@ -958,11 +1091,17 @@ def test_the_mirror_drops_a_session_only_under_the_name_it_was_used_by() -> None
 def test_an_unreachable_redis_raises_store_unavailable() -> None:
     pytest.importorskip("redis")
     store = open_store(f"redis://127.0.0.1:{free_port()}/0")
-    for call in (lambda: store.get("x"), lambda: store.list(), lambda: store.create(make_session())):
+    ops = StoreOps(store)
+    for call in (
+        lambda: ops.get("x"),
+        lambda: ops.list(),
+        lambda: ops.create(make_session()),
+        lambda: ops.head("x"),  # on the event loop's client
+        lambda: ops.detect("x", [0.9], flat_idx=np.array([0])),
+        lambda: ops.summary("x"),
+    ):
         with pytest.raises(StoreUnavailable):
             call()
-    with pytest.raises(StoreUnavailable):
-        asyncio.run(store.owner_and_version("x"))
     store.close()
 
 
@@ -980,7 +1119,7 @@ def test_open_store_picks_the_implementation(tmp_path: Path) -> None:
     sized.close()
 
 
-# -- info() and a target class named later -------------------------------------------------------------------
+# -- head() and a target class named later -------------------------------------------------------------------
 
 
 class AttributeSpy:
@@ -1015,67 +1154,79 @@ def redis_commands(store: Any, call: Callable[[], Any], session_id: str | None =
     return commands
 
 
-def test_owner_and_version_follow_updates_deletion_and_expiry(store: Any) -> None:
-    async def peek(session_id: str) -> tuple[str, int]:
-        return await store.owner_and_version(session_id)  # on an event loop, as the poll route calls it
+def test_head_and_scene_graph_follow_updates_and_deletion(store: Any) -> None:
+    def peek(session_id: str) -> tuple[str, int]:
+        info = store.head(session_id)  # on an event loop, as the poll route calls it
+        return info.robot_id, info.version
 
     store.create(make_session("peeked", robot_id="robot-9"))
-    assert asyncio.run(peek("peeked")) == ("robot-9", 0)
-    store.apply_detections("peeked", [0.7], flat_idx=np.array([1]))
-    store.apply_utterance("peeked", wide_mixture(np.random.default_rng(1)))
-    assert asyncio.run(peek("peeked")) == ("robot-9", 2) == ("robot-9", store.info("peeked").version)
+    assert peek("peeked") == ("robot-9", 0)
+    store.detect("peeked", [0.7], flat_idx=np.array([1]))
+    store.utter("peeked", wide_mixture(np.random.default_rng(1)))
+    assert peek("peeked") == ("robot-9", 2) == ("robot-9", store.get("peeked").version)
+    assert store.scene_graph("peeked") == SCENE
+    moved = SceneGraph.model_validate({**SCENE_DICT, "objects": SCENE_DICT["objects"][1:]})
+    assert store.replace_scene_graph("peeked", moved) == 3
+    assert store.scene_graph("peeked") == moved and peek("peeked") == ("robot-9", 3)
     store.delete("peeked")
     for absent in ("peeked", "never-made"):
         with pytest.raises(NotFound):
-            asyncio.run(peek(absent))
+            peek(absent)
+        with pytest.raises(NotFound):
+            store.scene_graph(absent)
 
 
-def test_the_event_loop_updates_equal_the_threaded_ones_and_check_the_writer(store: Any) -> None:
+def test_updates_on_one_event_loop_inline_or_not_match_the_reference_and_check_the_writer(store: Any) -> None:
     session = make_session(robot_id="robot-3")
     store.create(session)
     rng = np.random.default_rng(5)
-    allow: Callable[[str], None] = lambda robot_id: None  # noqa: E731
-
-    def refuse(robot_id: str) -> None:
-        raise Refused(robot_id)
+    raw, anyone, robot_1 = store.store, Writers(), Writers("robot-1")
 
     async def stream() -> list[int]:  # as the observation route calls them, on one event loop
         versions = []
         for step in range(6):
             ijk = session.grid.flat_to_ijk(rng.integers(0, session.grid.n_voxels, size=40))
             labels = rng.integers(0, 2, size=40)
+            how = {"voxels": ijk, "max_voxels": 40, "caller": anyone, "inline": step % 3 != 2}
             if step % 2:
-                result = await store.apply_observations_async(session.id, labels, voxels=ijk, authorize=allow)
+                result = await raw.update(session.id, changes.labels(labels, **how))
                 session.belief.apply_increments(session.observation_batch(labels, voxels=ijk))
             else:
                 p = rng.uniform(0.05, 0.95, size=40)
-                result = await store.apply_detections_async(session.id, p, voxels=ijk, authorize=allow)
+                result = await raw.update(session.id, changes.detections(p, **how))
                 session.belief.apply_increments(session.detection_batch(p, voxels=ijk))
             versions.append(result.version)
+        refused = changes.detections(
+            np.array([0.9]), voxels=ijk[:1], max_voxels=1, caller=robot_1, inline=True
+        )
         with pytest.raises(Refused):
-            await store.apply_detections_async(session.id, [0.9], voxels=ijk[:1], authorize=refuse)
+            await raw.update(session.id, refused)
+        absent = changes.labels(np.array([1]), voxels=ijk[:1], max_voxels=1, inline=True)
         with pytest.raises(NotFound):
-            await store.apply_observations_async("never-made", [1], voxels=ijk[:1])
+            await raw.update("never-made", absent)
         return versions
 
     assert asyncio.run(stream()) == [1, 2, 3, 4, 5, 6]
+    assert anyone.asked == ["robot-3"] * 6 and robot_1.asked == ["robot-3"]
     assert_same_belief(store.get(session.id), session)
 
 
-def test_memory_owner_and_version_of_an_expired_session_is_not_found() -> None:
+def test_memory_head_of_an_expired_session_is_not_found() -> None:
     clock = FakeClock()
-    store = MemorySessionStore(ttl_s=10.0, clock=clock)
+    store = memory_store(ttl_s=10.0, clock=clock)
     store.create(make_session("brief"))
     clock.now += 11.0
     with pytest.raises(NotFound):
-        asyncio.run(store.owner_and_version("brief"))
+        store.head("brief")
+    with pytest.raises(NotFound):
+        store.scene_graph("brief")
 
 
-def test_info_is_get_info_without_reading_the_layers(store: Any) -> None:
+def test_head_is_the_info_of_load_without_reading_the_layers(store: Any) -> None:
     session = make_session("meta-only")
     store.create(session)
-    store.apply_detections("meta-only", [0.7, 0.2], flat_idx=np.array([1, 2]))
-    info = store.info("meta-only")
+    store.detect("meta-only", [0.7, 0.2], flat_idx=np.array([1, 2]))
+    info = store.head("meta-only")
     assert info == store.get("meta-only").info()
     assert (info.version, info.grid, info.sensor_model, info.label_map) == (
         1,
@@ -1084,39 +1235,41 @@ def test_info_is_get_info_without_reading_the_layers(store: Any) -> None:
         LABELS,
     )
     assert store.list() == [info]
-    if isinstance(store, MemorySessionStore):
+    if isinstance(store.store, MemorySessionStore):
         stored = store._entries["meta-only"].session
         spy = stored.belief = AttributeSpy(stored.belief)
-        assert store.info("meta-only") == info
+        assert store.head("meta-only") == info
         assert not spy.read & {"lang", "vis", "copy"}
         store.get("meta-only")
         assert "copy" in spy.read  # the spy does see a read of the layers
     else:
-        info_commands = redis_commands(store, lambda: store.info("meta-only"), "meta-only")
+        info_commands = redis_commands(store, lambda: store.head("meta-only"), "meta-only")
         touched = [c for c in info_commands if "{meta-only}" in c]
         assert touched and all(":meta" in c and ":lang" not in c and ":vis" not in c for c in touched)
-        assert any(":lang" in c for c in redis_commands(store, lambda: store.get("meta-only"), "meta-only"))
+        fresh = StoreOps(type(store.store)(store._url, prefix=store.prefix))  # no mirror: `load` reads it all
+        assert any(":lang" in c for c in redis_commands(fresh, lambda: fresh.get("meta-only"), "meta-only"))
+        fresh.close()
     with pytest.raises(NotFound):
-        store.info("absent")
+        store.head("absent")
 
 
 def test_a_session_without_a_target_class_takes_detections_and_refuses_labels_until_named(store: Any) -> None:
     session = new_session("robot-1", SCENE, "", label_map=LABELS, session_id="unnamed")
     store.create(session)
-    assert store.info("unnamed").target_label == ""
+    assert store.head("unnamed").target_label == ""
     with pytest.raises(Conflict, match="target class is unknown"):
-        store.apply_observations("unnamed", [1, 0], flat_idx=np.array([3, 4]))
-    assert store.apply_detections("unnamed", [0.8], flat_idx=np.array([3])).version == 1
+        store.observe("unnamed", [1, 0], flat_idx=np.array([3, 4]))
+    assert store.detect("unnamed", [0.8], flat_idx=np.array([3])).version == 1
     for bad in ("", " _ ", "sofa"):  # no class at all; a class the label map does not name
         with pytest.raises(InvalidInput) as error:
-            store.set_target_label("unnamed", bad)
+            store.set_target("unnamed", bad)
         assert error.value.field == "target_label"
-    assert store.info("unnamed").version == 1  # rejected changes change nothing
-    assert store.set_target_label("unnamed", "Backpacks") == 2
-    assert store.info("unnamed").target_label == "Backpacks"
-    assert store.apply_observations("unnamed", [1, 0], flat_idx=np.array([3, 4])).version == 3
+    assert store.head("unnamed").version == 1  # rejected changes change nothing
+    assert store.set_target("unnamed", "Backpacks") == 2
+    assert store.head("unnamed").target_label == "Backpacks"
+    assert store.observe("unnamed", [1, 0], flat_idx=np.array([3, 4])).version == 3
     with pytest.raises(NotFound):
-        store.set_target_label("absent", "backpack")
+        store.set_target("absent", "backpack")
     reference = session.copy()
     reference.belief.apply_increments(reference.detection_batch([0.8], flat_idx=np.array([3])))
     reference.set_target_label("Backpacks")
@@ -1137,14 +1290,14 @@ def test_naming_the_target_during_concurrent_updates_loses_none_of_them(store: A
     def worker(part: list[tuple[np.ndarray, np.ndarray]]) -> None:
         try:
             for p_target, idx in part:
-                store.apply_detections("busy", p_target, flat_idx=idx)
+                store.detect("busy", p_target, flat_idx=idx)
         except BaseException as exc:  # surfaced below
             errors.append(exc)
 
     threads = [threading.Thread(target=worker, args=(batches[t::2],)) for t in range(2)]
     for t in threads:
         t.start()
-    store.set_target_label("busy", "backpack")
+    store.set_target("busy", "backpack")
     for t in threads:
         t.join()
     assert not errors
@@ -1160,19 +1313,19 @@ def test_naming_the_target_during_concurrent_updates_loses_none_of_them(store: A
 def test_a_target_label_set_later_survives_reopening(tmp_path: Path, from_snapshot: bool) -> None:
     data_dir = tmp_path / "data"
     # Compacting every 2 records leaves the label only in the snapshot; else only in the log.
-    store = MemorySessionStore(data_dir, snapshot_every=2 if from_snapshot else 10_000)
+    store = memory_store(data_dir, snapshot_every=2 if from_snapshot else 10_000)
     store.create(new_session("robot-1", SCENE, "", label_map=LABELS, session_id="later"))
-    store.apply_detections("later", [0.8], flat_idx=np.array([3]))
-    assert store.set_target_label("later", "backpack") == 2
-    store.apply_observations("later", [1, 0], flat_idx=np.array([3, 4]))
+    store.detect("later", [0.8], flat_idx=np.array([3]))
+    assert store.set_target("later", "backpack") == 2
+    store.observe("later", [1, 0], flat_idx=np.array([3, 4]))
     wal_bytes = sum(p.stat().st_size for p in data_dir.glob("wal-*.log"))
     assert (wal_bytes == 0) == from_snapshot
     before = durable_state(store)
     del store
     store = reopen(data_dir)
     assert_same_sessions(durable_state(store), before)
-    assert store.info("later").target_label == "backpack"
-    assert store.apply_observations("later", [1], flat_idx=np.array([5])).version == 4
+    assert store.head("later").target_label == "backpack"
+    assert store.observe("later", [1], flat_idx=np.array([5])).version == 4
     store.close()
 
 
@@ -1182,12 +1335,12 @@ def test_a_target_label_set_on_one_replica_is_seen_by_another(redis_url: str) ->
     second = redis_store(redis_url, prefix=first.prefix)  # another process's view of the same server
     first.create(new_session("robot-1", SCENE, "", label_map=LABELS, session_id="shared"))
     with pytest.raises(Conflict):
-        second.apply_observations("shared", [1], flat_idx=np.array([0]))
-    assert first.set_target_label("shared", "backpack") == 1
-    seen = second.info("shared")
+        second.observe("shared", [1], flat_idx=np.array([0]))
+    assert first.set_target("shared", "backpack") == 1
+    seen = second.head("shared")
     assert (seen.target_label, seen.version) == ("backpack", 1)
-    assert second.apply_observations("shared", [1], flat_idx=np.array([0])).version == 2
-    assert first.info("shared").version == 2
+    assert second.observe("shared", [1], flat_idx=np.array([0])).version == 2
+    assert first.head("shared").version == 2
     first.close()
     second.close()
 
@@ -1238,16 +1391,16 @@ def test_labels_on_mapped_look_alikes_leave_the_belief_alone(store: Any) -> None
     free = np.setdiff1d(np.arange(session.grid.n_voxels), chair_voxels)[:50]
     voxels = np.concatenate([chair_voxels, free])
     # While the target is a backpack, the chairs are ordinary voxels: "chair" there is evidence against.
-    store.apply_observations(session.id, np.full(len(voxels), 3), flat_idx=voxels)
-    vis = store.read_layers(session.id).vis
+    store.observe(session.id, np.full(len(voxels), 3), flat_idx=voxels)
+    vis = store.layers(session.id).vis
     assert np.all(vis[voxels] < 0)
     # Once the target is a chair, the mapped chairs explain "chair" labels: no change on their voxels, while
     # unmapped voxels labelled "chair" gain log(tp/fp) and voxels labelled otherwise lose.
-    store.set_target_label(session.id, "chair")
-    before = store.read_layers(session.id).vis.copy()
-    store.apply_observations(session.id, np.full(len(voxels), 3), flat_idx=voxels)
-    store.apply_observations(session.id, np.zeros(len(chair_voxels), dtype=int), flat_idx=chair_voxels)
-    after = store.read_layers(session.id).vis
+    store.set_target(session.id, "chair")
+    before = store.layers(session.id).vis.copy()
+    store.observe(session.id, np.full(len(voxels), 3), flat_idx=voxels)
+    store.observe(session.id, np.zeros(len(chair_voxels), dtype=int), flat_idx=chair_voxels)
+    after = store.layers(session.id).vis
     np.testing.assert_array_equal(after[chair_voxels], before[chair_voxels])
     tp, fp = session.sensor_model.tp, session.sensor_model.fp
     np.testing.assert_allclose(after[free] - before[free], np.log(tp / fp), rtol=1e-5)
@@ -1255,6 +1408,6 @@ def test_labels_on_mapped_look_alikes_leave_the_belief_alone(store: Any) -> None
     store.replace_scene_graph(
         session.id, SceneGraph.model_validate({"objects": [LOOK_ALIKE_SCENE.objects[2]]})
     )
-    before = store.read_layers(session.id).vis.copy()
-    store.apply_observations(session.id, np.full(len(chair_voxels), 3), flat_idx=chair_voxels)
-    assert np.all(store.read_layers(session.id).vis[chair_voxels] > before[chair_voxels])
+    before = store.layers(session.id).vis.copy()
+    store.observe(session.id, np.full(len(chair_voxels), 3), flat_idx=chair_voxels)
+    assert np.all(store.layers(session.id).vis[chair_voxels] > before[chair_voxels])
