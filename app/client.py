@@ -68,7 +68,7 @@ def _pause(attempt: int, backoff_s: float, response: httpx.Response | None) -> f
             return min(MAX_PAUSE_S, float(response.headers.get("retry-after", "")))
         except ValueError:
             pass
-    return min(MAX_PAUSE_S, backoff_s * 2**attempt) * random.uniform(0.5, 1.0)
+    return min(MAX_PAUSE_S, backoff_s * 2.0**attempt) * random.uniform(0.5, 1.0)
 
 
 @dataclass(frozen=True)
@@ -172,6 +172,12 @@ def _json(response: httpx.Response) -> Any:
     return _checked(response).json() if response.status_code != 204 else None
 
 
+def _object(response: httpx.Response) -> dict[str, Any]:
+    """The JSON object that every endpoint but delete answers with."""
+    body: dict[str, Any] = _json(response)
+    return body
+
+
 def _belief(response: httpx.Response) -> tuple[dict[str, Any] | None, str | None]:
     """(summary, etag); summary is None when the belief has not changed (304)."""
     etag = response.headers.get("etag")
@@ -232,19 +238,20 @@ class VLMapClient:
             attempt += 1
 
     def ground(self, scene_graph: Any, utterance: str, **extra: Any) -> dict[str, Any]:
-        return _json(self._send(_Calls.ground(scene_graph, utterance, **extra)))
+        return _object(self._send(_Calls.ground(scene_graph, utterance, **extra)))
 
     def create_session(
         self, robot_id: str, scene_graph: Any, idempotency_key: str | None = None, **fields: Any
     ) -> dict[str, Any]:
         """fields: grid, target_label, sensor_model, label_map (see the OpenAPI's SessionCreate)."""
-        return _json(self._send(_Calls.create_session(robot_id, scene_graph, idempotency_key, **fields)))
+        return _object(self._send(_Calls.create_session(robot_id, scene_graph, idempotency_key, **fields)))
 
     def list_sessions(self, robot_id: str | None = None) -> list[dict[str, Any]]:
-        return _json(self._send(_Calls.list_sessions(robot_id)))["sessions"]
+        sessions: list[dict[str, Any]] = _object(self._send(_Calls.list_sessions(robot_id)))["sessions"]
+        return sessions
 
     def get_session(self, session_id: str) -> dict[str, Any]:
-        return _json(self._send(_Calls.get_session(session_id)))
+        return _object(self._send(_Calls.get_session(session_id)))
 
     def delete_session(self, session_id: str, idempotency_key: str | None = None) -> None:
         _json(self._send(_Calls.delete_session(session_id, idempotency_key)))
@@ -252,7 +259,7 @@ class VLMapClient:
     def replace_scene_graph(
         self, session_id: str, scene_graph: Any, idempotency_key: str | None = None
     ) -> dict[str, Any]:
-        return _json(self._send(_Calls.replace_scene_graph(session_id, scene_graph, idempotency_key)))
+        return _object(self._send(_Calls.replace_scene_graph(session_id, scene_graph, idempotency_key)))
 
     def send_utterance(
         self,
@@ -260,11 +267,11 @@ class VLMapClient:
         utterance: str,
         options: dict[str, Any] | None = None,
         idempotency_key: str | None = None,
-    ) -> dict:
+    ) -> dict[str, Any]:
         """The service's answer as a dict: "grounding", "belief", "fused" (false: the utterance was about
         another class than the session's target and left the belief as it was) and "reason" (why not fused,
         or why only the broad prior of an ungrounded utterance was; None otherwise)."""
-        return _json(self._send(_Calls.send_utterance(session_id, utterance, options, idempotency_key)))
+        return _object(self._send(_Calls.send_utterance(session_id, utterance, options, idempotency_key)))
 
     def send_observations(
         self, session_id: str, summary: bool = True, idempotency_key: str | None = None, **batch: Any
@@ -275,7 +282,7 @@ class VLMapClient:
         The batch is sent with an Idempotency-Key (`idempotency_key`, else a fresh one) and retried with it.
         """
         call = _Calls.send_observations(session_id, summary, idempotency_key, **batch)
-        return _json(self._send(call))
+        return _object(self._send(call))
 
     def get_belief(
         self, session_id: str, etag: str | None = None, top_k: int = 5
@@ -329,19 +336,20 @@ class AsyncVLMapClient:
             attempt += 1
 
     async def ground(self, scene_graph: Any, utterance: str, **extra: Any) -> dict[str, Any]:
-        return _json(await self._send(_Calls.ground(scene_graph, utterance, **extra)))
+        return _object(await self._send(_Calls.ground(scene_graph, utterance, **extra)))
 
     async def create_session(
         self, robot_id: str, scene_graph: Any, idempotency_key: str | None = None, **fields: Any
     ) -> dict[str, Any]:
         call = _Calls.create_session(robot_id, scene_graph, idempotency_key, **fields)
-        return _json(await self._send(call))
+        return _object(await self._send(call))
 
     async def list_sessions(self, robot_id: str | None = None) -> list[dict[str, Any]]:
-        return _json(await self._send(_Calls.list_sessions(robot_id)))["sessions"]
+        sessions: list[dict[str, Any]] = _object(await self._send(_Calls.list_sessions(robot_id)))["sessions"]
+        return sessions
 
     async def get_session(self, session_id: str) -> dict[str, Any]:
-        return _json(await self._send(_Calls.get_session(session_id)))
+        return _object(await self._send(_Calls.get_session(session_id)))
 
     async def delete_session(self, session_id: str, idempotency_key: str | None = None) -> None:
         _json(await self._send(_Calls.delete_session(session_id, idempotency_key)))
@@ -349,7 +357,7 @@ class AsyncVLMapClient:
     async def replace_scene_graph(
         self, session_id: str, scene_graph: Any, idempotency_key: str | None = None
     ) -> dict[str, Any]:
-        return _json(await self._send(_Calls.replace_scene_graph(session_id, scene_graph, idempotency_key)))
+        return _object(await self._send(_Calls.replace_scene_graph(session_id, scene_graph, idempotency_key)))
 
     async def send_utterance(
         self,
@@ -357,16 +365,16 @@ class AsyncVLMapClient:
         utterance: str,
         options: dict[str, Any] | None = None,
         idempotency_key: str | None = None,
-    ) -> dict:
+    ) -> dict[str, Any]:
         """As `VLMapClient.send_utterance`: a dict with "grounding", "belief", "fused" and "reason"."""
         call = _Calls.send_utterance(session_id, utterance, options, idempotency_key)
-        return _json(await self._send(call))
+        return _object(await self._send(call))
 
     async def send_observations(
         self, session_id: str, summary: bool = True, idempotency_key: str | None = None, **batch: Any
     ) -> dict[str, Any]:
         call = _Calls.send_observations(session_id, summary, idempotency_key, **batch)
-        return _json(await self._send(call))
+        return _object(await self._send(call))
 
     async def get_belief(
         self, session_id: str, etag: str | None = None, top_k: int = 5

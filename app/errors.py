@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class VLMapError(Exception):
     """Base class of every error this package raises on purpose."""
@@ -11,7 +13,9 @@ class InvalidInput(VLMapError):
     """A request or file is malformed; `field` names the offending location (dotted path), `details` lists
     the individual errors when a validator found several."""
 
-    def __init__(self, message: str, field: str | None = None, details: list[dict] | None = None) -> None:
+    def __init__(
+        self, message: str, field: str | None = None, details: list[dict[str, Any]] | None = None
+    ) -> None:
         super().__init__(message)
         self.field = field
         self.details = details or []

@@ -83,7 +83,7 @@ def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
 
 def error_body(
     code: str, message: str, field: str | None = None, errors: list[dict[str, Any]] | None = None
-) -> dict:
+) -> dict[str, Any]:
     return ErrorResponse(
         code=code, message=message, field=field, request_id=request_id_var.get(), errors=errors or []
     ).model_dump()

@@ -195,7 +195,8 @@ def encode_msgpack_batch(
         envelope["p_target"] = pack_array(np.asarray(p_target, dtype=np.float32))
     if tp is not None or fp is not None:
         envelope["sensor_model"] = {k: v for k, v in (("tp", tp), ("fp", fp)) if v is not None}
-    return msgpack.packb(envelope, use_bin_type=True)
+    packed: bytes = msgpack.packb(envelope, use_bin_type=True)
+    return packed
 
 
 #: Voxels per chunk of the grid encoder's passes and of the stream it writes (1 MiB of float32).
@@ -222,7 +223,9 @@ def belief_grid_stream(
     length = len(head) + sum(len(meta) + 4 * n for meta in metas.values())
 
     def sums(start: int) -> np.ndarray:
-        return lang[start : start + _GRID_CHUNK].astype(np.float64) + vis[start : start + _GRID_CHUNK]
+        stop = start + _GRID_CHUNK
+        total: np.ndarray = lang[start:stop].astype(np.float64) + vis[start:stop]
+        return total
 
     def chunks() -> Iterator[bytes]:
         yield head
@@ -317,7 +320,9 @@ async def read_batch(request: Request, run: Runner, max_voxels: int, max_errors:
         decode = partial(decode_msgpack_batch, raw, max_voxels)
         return decode() if len(raw) <= INLINE_DECODE_BYTES else await run(decode)
     if content_type == "application/json":
-        return await run(decode_json_batch, await json_bytes(request), max_voxels, max_errors)
+        body = await json_bytes(request)
+        batch: ObservationBatch = await run(decode_json_batch, body, max_voxels, max_errors)
+        return batch
     msg = f"unsupported content type {content_type!r}: send application/json or application/msgpack"
     raise UnsupportedMediaType(msg, field="content-type")
 

@@ -242,6 +242,6 @@ def posterior(lang: np.ndarray, vis: np.ndarray) -> np.ndarray:
     """Equation (2): softmax(lang + vis) over all voxels, (N,) float64."""
     s = lang.astype(np.float64) + vis
     s -= s.max()
-    p = np.exp(s)
+    p: np.ndarray = np.exp(s)
     p /= p.sum()
     return p

@@ -321,7 +321,8 @@ class ObservationModel:
                 bad = arr[classes < 0]
                 msg = f"label ids {np.unique(bad)[:10].tolist()} are not in the session's label map"
                 raise InvalidInput(msg, "labels")
-            return classes == 1
+            target: np.ndarray = classes == 1
+            return target
         if arr.dtype.kind == "U":
             names, inverse = np.unique(arr, return_inverse=True)
             return self._names_are_target(names.tolist())[inverse]

@@ -117,7 +117,8 @@ class FrameMotion:
         else:
             c, s = math.cos(self.yaw), math.sin(self.yaw)
             x, y = c * p[..., 0] - s * p[..., 1], s * p[..., 0] + c * p[..., 1]
-        return np.stack([x, y, p[..., 2]], axis=-1) + np.asarray(self.offset)
+        moved: np.ndarray = np.stack([x, y, p[..., 2]], axis=-1) + np.asarray(self.offset)
+        return moved
 
     def boxes(
         self, centres: np.ndarray, sizes: np.ndarray, yaws: np.ndarray

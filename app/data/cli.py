@@ -9,7 +9,7 @@ import logging
 from pathlib import Path
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser("data", help="build grounding-case data sets")
     sub = parser.add_subparsers(dest="data_command", required=True, metavar="DATA_COMMAND")
 

@@ -13,7 +13,7 @@ PROPOSER_CHOICES = ("gt", "builtin", "llm")
 GROUNDER_CHOICES = ("lsm", "geometric", "fixed", "scaffolded-llm", "llm-e2e")
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser("eval", help="evaluate grounding accuracy and calibration")
     sub = parser.add_subparsers(dest="eval_command", required=True, metavar="EVAL_COMMAND")
 

@@ -45,7 +45,8 @@ def euclidean_errors(means: np.ndarray, targets: np.ndarray) -> np.ndarray:
     diff = np.asarray(means, dtype=np.float64).reshape(-1, 3) - np.asarray(targets, dtype=np.float64).reshape(
         -1, 3
     )
-    return np.linalg.norm(diff, axis=1)
+    errors: np.ndarray = np.linalg.norm(diff, axis=1)
+    return errors
 
 
 def rmse(means: np.ndarray, targets: np.ndarray) -> float:
@@ -59,7 +60,8 @@ def nees(means: np.ndarray, covariances: np.ndarray, targets: np.ndarray) -> np.
     mu, cov, y = _as_batch(means, covariances, targets)
     chol = np.linalg.cholesky(cov)  # (N, 3, 3)
     z = np.linalg.solve(chol, (y - mu)[..., None])[..., 0]  # (N, 3): L^-1 (y - mu)
-    return np.sum(z * z, axis=1)
+    squared: np.ndarray = np.sum(z * z, axis=1)
+    return squared
 
 
 def anees(means: np.ndarray, covariances: np.ndarray, targets: np.ndarray) -> float:
@@ -72,7 +74,8 @@ def gaussian_nll(means: np.ndarray, covariances: np.ndarray, targets: np.ndarray
     mu, cov, y = _as_batch(means, covariances, targets)
     chol = np.linalg.cholesky(cov)
     log_det = 2.0 * np.sum(np.log(np.diagonal(chol, axis1=1, axis2=2)), axis=1)  # (N,)
-    return 0.5 * (log_det + nees(mu, cov, y) + 3 * _LOG_2PI)
+    nll: np.ndarray = 0.5 * (log_det + nees(mu, cov, y) + 3 * _LOG_2PI)
+    return nll
 
 
 def mixture_nll(mixture: GaussianMixture, target: np.ndarray) -> float:

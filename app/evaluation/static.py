@@ -230,7 +230,8 @@ def mixture_coverage(
     if len(mixture.weights) == 1 and not len(mixture.box_weights):
         level = chi2_3_cdf(float(nees(mixture.means[0], mixture.covariances[0], target)[0]))
         return np.array([level <= m for m in masses])
-    return hdr_coverage(mixture, np.asarray(target).reshape(1, 3), rng, masses, hdr_samples)[0]
+    covered: np.ndarray = hdr_coverage(mixture, np.asarray(target).reshape(1, 3), rng, masses, hdr_samples)[0]
+    return covered
 
 
 def no_language_nll(scene_graph: SceneGraph, target: np.ndarray) -> float:

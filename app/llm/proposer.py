@@ -57,7 +57,8 @@ def softmax_weights(confidences: list[float] | np.ndarray, temperature: float = 
         raise ValueError(msg)
     scaled = np.asarray(confidences, dtype=np.float64) / temperature  # (H,)
     exp = np.exp(scaled - scaled.max())
-    return exp / exp.sum()
+    weights: np.ndarray = exp / exp.sum()
+    return weights
 
 
 def check_hypothesis(item: Any, scene_graph: SceneGraph) -> tuple[Hypothesis, float] | str:

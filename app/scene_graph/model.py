@@ -99,12 +99,14 @@ class SceneObject(BaseModel):
     @property
     def min_corner(self) -> np.ndarray:
         """Lower corner of the axis-aligned box that bounds the (possibly rotated) object."""
-        return np.asarray(self.center) - self.half_extent
+        low: np.ndarray = np.asarray(self.center) - self.half_extent
+        return low
 
     @property
     def max_corner(self) -> np.ndarray:
         """Upper corner of the axis-aligned box that bounds the (possibly rotated) object."""
-        return np.asarray(self.center) + self.half_extent
+        high: np.ndarray = np.asarray(self.center) + self.half_extent
+        return high
 
     @property
     def half_extent(self) -> np.ndarray:

@@ -275,7 +275,8 @@ class Densities:
     def moment_covariances(self) -> np.ndarray:
         """(1 - a) Sigma + a Sigma_tail, (S, 3, 3)."""
         a = self.weights[:, None, None]
-        return (1.0 - a) * self.core + a * self.tail
+        covariances: np.ndarray = (1.0 - a) * self.core + a * self.tail
+        return covariances
 
     def nll(self, targets: np.ndarray) -> np.ndarray:
         """-log p(y_i | h_i), (S,)."""
@@ -284,7 +285,8 @@ class Densities:
         with np.errstate(divide="ignore"):
             terms = np.stack([np.log1p(-self.weights) + core, np.log(self.weights) + tail])  # (2, S)
         peak = terms.max(axis=0)
-        return -(peak + np.log(np.exp(terms - peak).sum(axis=0)))
+        nll: np.ndarray = -(peak + np.log(np.exp(terms - peak).sum(axis=0)))
+        return nll
 
     def coverage(self, targets: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Whether y_i lies in the density's HDR of each mass in `MASSES`, (S, M), by `_HDR_DRAWS` draws."""

@@ -534,7 +534,7 @@ def fit_proposer(
 # --- vlmap fit-proposer ---
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "fit-proposer",
         help="fit the built-in proposer end to end on human descriptions and built cases",

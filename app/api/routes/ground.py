@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter
@@ -57,7 +57,7 @@ async def ground(
 
 
 def resolve_scene_graph(
-    payload: SceneGraph | dict, settings: Settings, field: str = "scene_graph"
+    payload: SceneGraph | dict[str, Any], settings: Settings, field: str = "scene_graph"
 ) -> SceneGraph:
     """The request's scene graph as a native one (normalised from another format), within the limits."""
     if isinstance(payload, SceneGraph):

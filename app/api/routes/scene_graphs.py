@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
 
@@ -75,7 +75,7 @@ async def normalize_scene_graph(
 
 def normalize(raw: bytes, binary: bool, fmt: SceneGraphFormat | None, settings: Settings) -> SceneGraph:
     """The body as a native scene graph within the limits: binary bytes as they are, JSON decoded first."""
-    payload: bytes | dict
+    payload: bytes | dict[str, Any]
     if binary:
         payload = raw
     else:
