@@ -9,10 +9,11 @@ WORKDIR /srv/vlmap
 COPY requirements.lock pyproject.toml README.md ./
 COPY app ./app
 COPY models ./models
-# torch==2.13.0 is pinned in requirements.lock: a CPU build (never a bare `torch`).
+# The runtime lock only (no test or lint tools); it is complete, hence --no-deps. torch==2.13.0 is pinned in
+# it: a CPU build (never a bare `torch`).
 RUN python -m venv .venv \
  && .venv/bin/python -m pip install --quiet --upgrade pip \
- && .venv/bin/python -m pip install --quiet -r requirements.lock \
+ && .venv/bin/python -m pip install --quiet --no-deps -r requirements.lock \
  && .venv/bin/python -m pip install --quiet --no-deps -e .
 
 # The embedded session store logs to var/sessions (VLMAP_DATA_DIR); mount a volume there to keep beliefs.

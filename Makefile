@@ -2,36 +2,44 @@
 PYTHON ?= python3.11
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
-STAMP  := $(VENV)/.installed
+RUNTIME := $(VENV)/.runtime
+DEV     := $(VENV)/.dev
 
-.PHONY: venv serve test lint bench bench-fleet openapi clean
+.PHONY: venv serve test lint bench bench-fleet bench-footprint openapi clean
 
-venv: $(STAMP)
+venv: $(DEV)
 
-# The same steps as the Dockerfile. torch==2.13.0 is pinned in requirements.lock: pip takes the CPU
-# build that lies on this machine's disk (a bare `torch` would pull a multi-GB CUDA build).
-$(STAMP): requirements.lock pyproject.toml
+# The runtime, as the Dockerfile installs it. torch==2.13.0 is pinned in requirements.lock: pip takes the CPU
+# build that lies on this machine's disk (a bare `torch` would pull a multi-GB CUDA build). Both locks are
+# complete (every package, pinned), so they install with --no-deps: the runtime leaves out what the service
+# never imports although a dependency's metadata asks for it (requirements-dev.lock says which).
+$(RUNTIME): requirements.lock pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -r requirements.lock
+	$(PY) -m pip install --quiet --no-deps -r requirements.lock
 	$(PY) -m pip install --quiet --no-deps -e .
-	touch $(STAMP)
+	touch $(RUNTIME)
 
-serve: $(STAMP)
+# Tests, lint and the offline tools (eval, sim, train plots) on top of the runtime.
+$(DEV): $(RUNTIME) requirements-dev.lock
+	$(PY) -m pip install --quiet --no-deps -r requirements-dev.lock
+	touch $(DEV)
+
+serve: $(RUNTIME)
 	HF_HUB_OFFLINE=1 $(VENV)/bin/vlmap serve --host 127.0.0.1 --port 8000
 
-test: $(STAMP)
+test: $(DEV)
 	HF_HUB_OFFLINE=1 $(PY) -m pytest
 
-lint: $(STAMP)
+lint: $(DEV)
 	$(VENV)/bin/ruff check app tests bench
 	$(VENV)/bin/mypy
 
-openapi: $(STAMP)
+openapi: $(DEV)
 	$(VENV)/bin/vlmap openapi --out openapi/openapi.json
 
 # Benchmarks print figures (the README's Performance section quotes them); they assert nothing.
-bench: $(STAMP)
+bench: $(DEV)
 	HF_HUB_OFFLINE=1 $(PY) -m bench.ground_latency
 	HF_HUB_OFFLINE=1 $(PY) -m bench.fusion_kernel
 	HF_HUB_OFFLINE=1 $(PY) -m bench.sessions_e2e
@@ -39,8 +47,16 @@ bench: $(STAMP)
 	$(MAKE) bench-fleet
 
 # 20 robots + 5 dashboards for 60 s on two replicas sharing Redis, then the faults (needs redis-server).
-bench-fleet: $(STAMP)
+bench-fleet: $(DEV)
 	HF_HUB_OFFLINE=1 $(PY) -m bench.fleet
+
+# What a replica costs against the code of BASELINE (a checkout, e.g. `git worktree add /tmp/before HEAD~5`):
+# install sizes (a runtime-only venv is built for it), time to ready, RSS idle and with live sessions.
+bench-footprint: $(DEV)
+	rm -rf var/bench/runtime-venv
+	$(PYTHON) -m venv var/bench/runtime-venv
+	var/bench/runtime-venv/bin/python -m pip install --quiet --no-deps -r requirements.lock
+	HF_HUB_OFFLINE=1 $(PY) -m bench.footprint --runtime-venv var/bench/runtime-venv $(if $(BASELINE),--baseline $(BASELINE))
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache
