@@ -1,1 +1,1 @@
-"""One router module per resource."""
+"""One router module per resource: a namespace of modules, each exporting its `router` to `app.api.app`."""
