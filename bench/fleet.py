@@ -27,6 +27,7 @@ import os
 import shutil
 import signal
 import socket
+import subprocess
 import tempfile
 import time
 from collections import defaultdict
@@ -95,7 +96,8 @@ class LeanHTTPClient:
             return await asyncio.wait_for(self._exchange(method, path, body, headers or {}), self.timeout_s)
         except (TimeoutError, OSError, asyncio.IncompleteReadError, ValueError) as exc:
             await self.close()  # a broken or timed-out exchange leaves the connection unusable
-            raise httpx.TransportError(f"{type(exc).__name__}: {exc}") from exc
+            msg = f"{type(exc).__name__}: {exc}"
+            raise httpx.TransportError(msg) from exc
 
     async def _exchange(
         self, method: str, path: str, body: bytes, headers: dict[str, str]
@@ -109,7 +111,8 @@ class LeanHTTPClient:
         await writer.drain()
         status_line = await reader.readline()
         if not status_line:
-            raise ConnectionResetError("the service closed the connection")
+            msg = "the service closed the connection"
+            raise ConnectionResetError(msg)
         status = int(status_line.split()[1])
         answer: dict[str, str] = {}
         while (line := await reader.readline()) not in (b"\r\n", b""):
@@ -445,7 +448,7 @@ def print_table(title: str, summary: dict[str, Any], seconds: float) -> None:
         )
 
 
-def main(argv: list[str] | None = None) -> dict[str, Any]:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -480,6 +483,66 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
+    return parser
+
+
+def _start_store(
+    args: argparse.Namespace, parser: argparse.ArgumentParser, stack: ExitStack, env: dict[str, str]
+) -> RedisServer | None:
+    """The store the replicas share, named in `env`: a Redis server (returned) or a data directory."""
+    if args.store != "redis":
+        env["VLMAP_DATA_DIR"] = stack.enter_context(tempfile.TemporaryDirectory())
+        return None
+    binary = shutil.which("redis-server")
+    if binary is None:
+        parser.error("redis-server is not installed")
+    redis_server = RedisServer(binary, appendonly=True)
+    redis_server.start()
+    stack.callback(redis_server.close)
+    env["VLMAP_STORE"] = redis_server.url
+    return redis_server
+
+
+def _fleet_pids(
+    procs: list[subprocess.Popen[bytes]], redis_server: RedisServer | None
+) -> dict[str, int | None]:
+    """The processes whose CPU the run measures, by name (None: this one)."""
+    pids: dict[str, int | None] = {"load generator": None}
+    pids |= {f"replica {i + 1}": proc.pid for i, proc in enumerate(procs)}
+    pids |= {
+        f"replica {i + 1} worker {j + 1}": child
+        for i, proc in enumerate(procs)
+        for j, child in enumerate(worker_pids(proc.pid))
+    }
+    if redis_server is not None and redis_server.proc is not None:
+        pids["redis"] = redis_server.proc.pid
+    return pids
+
+
+def _start_replicas(
+    n: int, env: dict[str, str], stack: ExitStack
+) -> tuple[list[subprocess.Popen[bytes]], list[str]]:
+    """`n` services started and ready, (processes, URLs); `stack` kills those still running at its end (a
+    fault may replace a process in the list)."""
+    procs, urls = [], []
+    for _ in range(n):
+        proc, url = start_service(env)
+        procs.append(proc)
+        urls.append(url)
+
+    def stop_replicas() -> None:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+
+    stack.callback(stop_replicas)
+    for proc, url in zip(procs, urls, strict=True):
+        wait_ready(url, proc)
+    return procs, urls
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = _parser()
     args = parser.parse_args(argv)
     faults = [f for f in args.faults.split(",") if f]
     if args.store == "memory" and args.replicas != 1:
@@ -498,33 +561,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "VLMAP_LOG_LEVEL": "WARNING",
             "VLMAP_WORKER_PROCESSES": str(args.worker_processes),
         }
-        redis_server = None
-        if args.store == "redis":
-            binary = shutil.which("redis-server")
-            if binary is None:
-                parser.error("redis-server is not installed")
-            redis_server = RedisServer(binary, appendonly=True)
-            redis_server.start()
-            stack.callback(redis_server.close)
-            env["VLMAP_STORE"] = redis_server.url
-        else:
-            data_dir = stack.enter_context(tempfile.TemporaryDirectory())
-            env["VLMAP_DATA_DIR"] = data_dir
-        procs, urls = [], []
-        for _ in range(args.replicas):
-            proc, url = start_service(env)
-            procs.append(proc)
-            urls.append(url)
-
-        def stop_replicas() -> None:
-            for proc in procs:
-                if proc.poll() is None:
-                    proc.kill()
-
-        stack.callback(stop_replicas)
-        for proc, url in zip(procs, urls, strict=True):
-            wait_ready(url, proc)
-
+        redis_server = _start_store(args, parser, stack, env)
+        procs, urls = _start_replicas(args.replicas, env, stack)
         fleet = Fleet(urls, scene, args)
         fleet.create_sessions()
         print(
@@ -532,15 +570,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             f"{args.dashboards} dashboards, {args.replicas} replica(s), store={args.store}, "
             f"grid of {fleet.n_voxels} voxels; {args.duration:.0f} s"
         )
-        pids: dict[str, int | None] = {"load generator": None}
-        pids |= {f"replica {i + 1}": proc.pid for i, proc in enumerate(procs)}
-        pids |= {
-            f"replica {i + 1} worker {j + 1}": child
-            for i, proc in enumerate(procs)
-            for j, child in enumerate(worker_pids(proc.pid))
-        }
-        if redis_server is not None and redis_server.proc is not None:
-            pids["redis"] = redis_server.proc.pid
+        pids = _fleet_pids(procs, redis_server)
         served_before = server_seconds(urls)
         results["cpu_cores_busy"] = cpu_shares(
             pids, lambda: asyncio.run(fleet.run(args.duration)), args.duration

@@ -315,7 +315,8 @@ class MixtureGrounder:
     def ground(
         self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
     ) -> list[GaussianMixture]:
-        raise AssertionError("a mixture-predicting grounder is asked for its mixture, not per hypothesis")
+        msg = "a mixture-predicting grounder is asked for its mixture, not per hypothesis"
+        raise AssertionError(msg)
 
     def ground_mixture(self, scene_graph: SceneGraph, utterance: str) -> GaussianMixture:
         return GaussianMixture.from_components(
@@ -347,7 +348,8 @@ class FlakyGrounder(FixedGrounder):
         self, scene_graph: SceneGraph, utterance: str, hypotheses: list[Hypothesis]
     ) -> list[GaussianMixture]:
         if "case 1:" in utterance:
-            raise RuntimeError("endpoint hiccup")
+            msg = "endpoint hiccup"
+            raise RuntimeError(msg)
         return super().ground(scene_graph, utterance, hypotheses)
 
 

@@ -65,20 +65,25 @@ def import_edges() -> set[tuple[str, str]]:
 
 
 def room_cycles(edges: set[tuple[str, str]]) -> list[set[str]]:
-    """The strongly connected sets of rooms (more than one room each), by Tarjan's algorithm."""
+    """The strongly connected sets of rooms (more than one room each)."""
     graph: dict[str, set[str]] = defaultdict(set)
     for a, b in edges:
         if room(a) != room(b):
             graph[room(a)].add(room(b))
+    return [component for component in strongly_connected(graph) if len(component) > 1]
+
+
+def strongly_connected(graph: dict[str, set[str]]) -> list[set[str]]:
+    """The strongly connected components of a directed graph (successors by node), by Tarjan's algorithm."""
     index: dict[str, int] = {}
     low: dict[str, int] = {}
     stack: list[str] = []
-    cycles: list[set[str]] = []
+    components: list[set[str]] = []
 
     def visit(v: str) -> None:
         index[v] = low[v] = len(index)
         stack.append(v)
-        for w in sorted(graph[v]):
+        for w in sorted(graph.get(v, ())):
             if w not in index:
                 visit(w)
                 low[v] = min(low[v], low[w])
@@ -91,13 +96,12 @@ def room_cycles(edges: set[tuple[str, str]]) -> list[set[str]]:
                 component.add(w)
                 if w == v:
                     break
-            if len(component) > 1:
-                cycles.append(component)
+            components.append(component)
 
     for v in sorted(graph):
         if v not in index:
             visit(v)
-    return cycles
+    return components
 
 
 def describe(cycle: set[str], edges: set[tuple[str, str]]) -> str:

@@ -74,7 +74,8 @@ def _sample(text: str, name: str, **labels: str) -> float:
         found = dict(re.findall(r'(\w+)="([^"]*)"', line))
         if all(found.get(k) == v for k, v in labels.items()):
             return float(line.rsplit(" ", 1)[1])
-    raise AssertionError(f"no sample {name} {labels} in metrics")
+    msg = f"no sample {name} {labels} in metrics"
+    raise AssertionError(msg)
 
 
 def test_metrics_count_requests_and_time_inference_stages(client: TestClient, scene_graph_dict: dict) -> None:

@@ -24,7 +24,9 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def start_service(env: dict[str, str] | None = None, port: int | None = None) -> tuple[subprocess.Popen, str]:
+def start_service(
+    env: dict[str, str] | None = None, port: int | None = None
+) -> tuple[subprocess.Popen[bytes], str]:
     """Start `vlmap serve` on 127.0.0.1 (a free port unless given); returns the process and its base URL."""
     port = port or free_port()
     proc = subprocess.Popen(
@@ -58,7 +60,10 @@ def cpu_seconds(pid: int) -> float:
 
 
 def wait_ready(
-    url: str, proc: subprocess.Popen | None = None, stall_s: float = STALL_S, timeout_s: float = MAX_START_S
+    url: str,
+    proc: subprocess.Popen[bytes] | None = None,
+    stall_s: float = STALL_S,
+    timeout_s: float = MAX_START_S,
 ) -> None:
     """Poll /readyz until it answers 200, for as long as the starting process keeps working: a busy
     machine loads the models more slowly, so the wait follows the process's CPU progress rather than a
