@@ -1,7 +1,10 @@
+import dataclasses
+import re
+
 import numpy as np
 import pytest
 
-from app.grounding.geometric import FixedGrounder, GeometricGrounder
+from app.grounding.geometric import FixedGrounder, GeometricConfig, GeometricGrounder
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph
@@ -94,5 +97,13 @@ def test_fixed_grounder_is_the_anchor_centroid_with_ten_centimetres(room: SceneG
 
 
 def test_describe_has_a_stable_checksum() -> None:
-    assert GeometricGrounder().describe()["checksum"] == GeometricGrounder().describe()["checksum"]
-    assert GeometricGrounder().describe()["checksum"].startswith("sha256:")
+    """The checksum is a function of the configuration: equal for equal configs (another instance, a config
+    built anew), different when any spread changes."""
+    described = GeometricGrounder().describe()
+    assert re.fullmatch(r"sha256:[0-9a-f]{64}", described["checksum"])
+    assert GeometricGrounder(GeometricConfig()).describe() == described
+    for spread in dataclasses.fields(GeometricConfig):
+        changed = GeometricConfig(**{spread.name: getattr(GeometricConfig(), spread.name) + 0.05})
+        other = GeometricGrounder(changed).describe()
+        assert other["config"][spread.name] != described["config"][spread.name]
+        assert other["checksum"] != described["checksum"], spread.name
