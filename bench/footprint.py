@@ -188,7 +188,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for side, tree in (reversed(trees.items()) if i % 2 else trees.items()):  # alternate who goes first
             with tempfile.TemporaryDirectory() as data_dir:
                 rounds[side].append(measure(tree, Path(data_dir)))
-            print(f"round {i + 1}/{args.rounds}, {side}: ready in {rounds[side][-1]['ready_s']:.1f} s", flush=True)
+            ready = rounds[side][-1]["ready_s"]
+            print(f"round {i + 1}/{args.rounds}, {side}: ready in {ready:.1f} s", flush=True)
     results = {side: summary(r) for side, r in rounds.items()}
     print()
     print_table(results)

@@ -21,7 +21,7 @@ from app.data.augment import (
 from app.data.conventions import Convention, groundings
 from app.data.label_vocabularies import renamed_labels
 from app.data.layouts import read_ai2thor, read_scannet
-from app.data.relations import Box, is_on
+from app.grounding.box_relations import Box, is_on
 from app.scene_graph.model import Region, SceneObject
 
 DATA = Path(__file__).parent / "resources" / "data"

@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from app.data import relations as rel
 from app.data.augment import FrameMotion
 from app.data.build import (
     SPLITS,
@@ -30,8 +29,9 @@ from app.data.build import (
 from app.data.cases import GroundingCase, read_cases
 from app.data.conventions import Convention, holds
 from app.data.label_vocabularies import SCANNET_TO_NYU
-from app.data.relations import Box, TrueReading, true_groundings
 from app.data.templates import RELATION_PHRASES, indefinite, is_plural, render_utterance, speaker_names
+from app.grounding import box_relations as rel
+from app.grounding.box_relations import Box, TrueReading, true_groundings
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneObject
 from app.vocabulary import same_class

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.data import relations as rel
 from app.data.conventions import (
     Convention,
     groundings,
@@ -14,8 +13,9 @@ from app.data.conventions import (
     sr3d_in_center,
     sr3d_next_to,
 )
-from app.data.relations import Box, TrueReading
 from app.data.templates import SR3D_NEXT_TO_PHRASES, VLA3D_PHRASES, render_sr3d, render_vla3d
+from app.grounding import box_relations as rel
+from app.grounding.box_relations import Box, TrueReading
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneObject
 

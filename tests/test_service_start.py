@@ -34,11 +34,13 @@ def test_a_process_that_makes_no_progress_fails_after_the_stall_time() -> None:
 
 def test_a_working_process_and_its_children_count_as_progress() -> None:
     spin = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.5: pass\ntime.sleep(30)"
-    parent = f"import subprocess, sys, time; subprocess.Popen([sys.executable, '-c', {spin!r}]); time.sleep(30)"
+    child = f"subprocess.Popen([sys.executable, '-c', {spin!r}])"
+    parent = f"import subprocess, sys, time\n{child}\ntime.sleep(30)"
     proc = subprocess.Popen([sys.executable, "-c", parent])
     try:
         before = cpu_seconds(proc.pid)
-        with pytest.raises(RuntimeError, match="used no CPU"):  # it never answers: stalls once the child idles
+        # It never answers: it stalls once the child idles.
+        with pytest.raises(RuntimeError, match="used no CPU"):
             wait_ready(_url(), proc, stall_s=2.0, timeout_s=60.0)
         assert cpu_seconds(proc.pid) >= before + 0.4  # the child's spinning counted for the parent
     finally:

@@ -6,7 +6,7 @@ caller now gives: the belief, both proposers, the case builder, the conventions 
 - Region phrases: one normalisation of region names ("Game_Room" is "game room") and one matching
   rule (`app.vocabulary.regions_named`), whoever parses.
 - Label classes of the label policies (`app.vocabulary.in_classes`): plurals, synonyms and head nouns.
-- Box relations: one set of thresholds (`app.data.relations`) for the built true readings and the
+- Box relations: one set of thresholds (`app.grounding.box_relations`) for the built true readings and the
   proposer's context counts: the vertical gap of "above" and the height of an internal support.
 """
 
@@ -20,8 +20,9 @@ import pytest
 from app.belief.grid import VoxelGrid
 from app.belief.session import ObservationModel, SensorModel, mapped_look_alikes
 from app.data import conventions
-from app.data import relations as box_relations
-from app.data.relations import (
+from app.data.templates import class_names, generic_names
+from app.grounding import box_relations
+from app.grounding.box_relations import (
     INTERNAL_SUPPORT_MIN_HEIGHT,
     ON_GAP_TOLERANCE,
     UNDER_BASE_TOLERANCE,
@@ -30,7 +31,6 @@ from app.data.relations import (
     anchor_allowed,
     true_groundings,
 )
-from app.data.templates import class_names, generic_names
 from app.grounding.builtin import BuiltinProposer
 from app.grounding.lexical import LexicalProposer
 from app.grounding.parsing import parse_utterance

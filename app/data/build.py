@@ -66,9 +66,9 @@ from app.data.layouts import (
     split_camel_case,
     thor_placement_relation,
 )
-from app.data.relations import TrueReading
 from app.data.templates import render_sr3d, render_utterance, render_vla3d
 from app.errors import InvalidInput
+from app.grounding.box_relations import TrueReading
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, SceneObject
 

@@ -2,16 +2,16 @@
 
 A grounding case carries `meta["convention"]`, the convention its relation was computed by. All three map
 onto the project's fixed relation set (`app.grounding.relations.Relation`) and use the box predicates of
-`app.data.relations` (the one set of box relations), with their own thresholds. Notation: for boxes t
+`app.grounding.box_relations` (the one set of box relations), with their own thresholds. Notation: for boxes t
 (target) and a (anchor), b_x / t_x are the bottom / top heights, h_x the height, F_x the footprint,
 IoM(F_t, F_a) = |F_t ∩ F_a| / min(|F_t|, |F_a|), cover(t, a) = |F_t ∩ F_a| / |F_t|, c_x the centre.
 "Class" is `app.vocabulary.class_key`: the same class up to lemmas and synonyms ("sofa" / "couch"). In
 every convention an anchor is never of the target's class and never a generic label ("object": it cannot
 be named), and the target is never floor, ceiling or wall.
 
-vlmap (the project's own; `app.data.relations.true_groundings`, its thresholds named there)
+vlmap (the project's own; `app.grounding.box_relations.true_groundings`, its thresholds named there)
     on, in, above, below, near, between (segment between two anchors), closest / farthest among the
-    target's class by centre distance with a margin, as defined in `app.data.relations`.
+    target's class by centre distance with a margin, as defined in `app.grounding.box_relations`.
 
 sr3d (ReferIt3D's Sr3D generator, `referit3d/data_generation/sr3d/`: the generators and their hp.yml)
     Contexts: the target's class has 2..SR3D_MAX_CONTEXT objects (create_sr3d.py --stimulus_is_too_hard 6;
@@ -68,15 +68,15 @@ no thresholds, so every number below is the code's default)
              projected on u, o_2 = (h_t - l_a2) / min(w_t, w_a2), o_1 = (h_a1 - l_t) / min(w_t, w_a1):
              c_a1.u < c_t.u < c_a2.u, o_i < VLA3D_OVERLAP_THRES, |o_1 - o_2| < VLA3D_SYMMETRY_THRES,
              -o_i < VLA3D_DISTANCE_THRES, and IoM of the cross-sections in the plane across u
-             > VLA3D_BETWEEN_IOM (`app.data.relations.axis_between`). The generator's second, vertical
-             variant (a target between two objects stacked in z) is left out: our "between" is read in the
-             floor plane.
+             > VLA3D_BETWEEN_IOM (`app.grounding.box_relations.axis_between`). The generator's second,
+             vertical variant (a target between two objects stacked in z) is left out: our "between" is read
+             in the floor plane.
     closest / farthest: the target's class sorted by centre distance from the anchor; the target first
              (last) and (d_(j+1) - d_(j)) L > VLA3D_ORDERED_THRES over the first (last) VLA3D_ORDERED_DEPTH
              places, L their mean box length along the direction to the anchor
-             (`app.data.relations.ranked_ordinal_relations`).
-    Comparisons at the generator's zero thresholds take `app.data.relations.ROUND_OFF` of slack (AI2-THOR
-    boxes touch exactly; a float's round-off must not decide).
+             (`app.grounding.box_relations.ranked_ordinal_relations`).
+    Comparisons at the generator's zero thresholds take `app.grounding.box_relations.ROUND_OFF` of slack
+    (AI2-THOR boxes touch exactly; a float's round-off must not decide).
     second_/third_closest and _farthest are not "closest": they are not generated. "beside" is listed by
     the generator but never computed (its code is commented out); it would be "near". "hanging_on" (a box
     within VLA3D hanging_thres_h of a wall-like anchor's side) is not mapped to "on": our "on" puts the
@@ -98,7 +98,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from app.data.relations import (
+from app.grounding.box_relations import (
     ROUND_OFF,
     BeneathRule,
     Box,

@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from app.data.relations import is_room_shell, is_structure, label_set
 from app.errors import InvalidInput
+from app.grounding.box_relations import is_room_shell, is_structure, label_set
 from app.grounding.relations import Relation
 from app.scene_graph.model import Region, SceneObject
 

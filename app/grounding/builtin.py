@@ -44,13 +44,14 @@ import math
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from app.data.relations import anchor_allowed
 from app.errors import ModelUnavailable
+from app.grounding.box_relations import anchor_allowed
 from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis, Mention, Proposal, UtteranceParse
+from app.grounding.interfaces import SentenceEncoder
 from app.grounding.lexical import describe
 from app.grounding.mixture import UniformBox
 from app.grounding.parsing import parse_utterance
@@ -71,9 +72,6 @@ from app.grounding.referent_features import (
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, SceneObject
 from app.vocabulary import class_key, lemmas, lexical_match, normalise, other_names, regions_named
-
-if TYPE_CHECKING:
-    from app.lsm.text_encoder import TextEncoder
 
 DEFAULT_PARAMS_PATH = Path(__file__).resolve().parents[2] / "models" / "proposer" / "params.json"
 LABEL_CACHE_SIZE = 50_000  # object names whose embeddings the proposer keeps
@@ -361,13 +359,9 @@ class BuiltinProposer:
 
     name = "builtin"
 
-    def __init__(self, encoder: TextEncoder | None = None, params: ProposerParams | None = None) -> None:
-        """`encoder`: the service's frozen MiniLM (one is loaded when None); `params`: the shipped ones
-        (models/proposer/params.json) when None."""
-        if encoder is None:
-            from app.lsm.text_encoder import TextEncoder
-
-            encoder = TextEncoder()
+    def __init__(self, encoder: SentenceEncoder, params: ProposerParams | None = None) -> None:
+        """`encoder`: the service's frozen MiniLM; `params`: the shipped ones (models/proposer/params.json)
+        when None."""
         params = params if params is not None else ProposerParams.load(DEFAULT_PARAMS_PATH)
         if params.encoder_sha256 and params.encoder_sha256 != encoder.sha256:
             msg = (
@@ -381,7 +375,7 @@ class BuiltinProposer:
         self._cache_lock = threading.Lock()
 
     @classmethod
-    def load(cls, encoder: TextEncoder, path: Path | None = None) -> BuiltinProposer:
+    def load(cls, encoder: SentenceEncoder, path: Path | None = None) -> BuiltinProposer:
         """The proposer with parameters read from `path` (default models/proposer/params.json)."""
         return cls(encoder, ProposerParams.load(path or DEFAULT_PARAMS_PATH))
 
@@ -780,8 +774,9 @@ class BuiltinProposer:
 
 def _reading(relation: Relation, label: str) -> tuple[Relation, bool]:
     """The relation a hypothesis reads for an anchor, and whether it is a vague stand-in: a relation the
-    label policy (`app.data.relations.anchor_allowed`) does not give this anchor ("on the wall", "above the
-    drawer") is read as "near", widened, never dropped (dropping it would lose the anchor's mass)."""
+    label policy (`app.grounding.box_relations.anchor_allowed`) does not give this anchor ("on the wall",
+    "above the drawer") is read as "near", widened, never dropped (dropping it would lose the anchor's
+    mass)."""
     if anchor_allowed(relation, lemmas(label)):
         return relation, False
     return Relation.NEAR, relation is not Relation.NEAR

@@ -7,11 +7,25 @@ factor (weighted hypotheses), a `Grounder` the first: one density per hypothesis
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
 
 from app.grounding.hypotheses import Hypothesis, Proposal
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
+
+
+class SentenceEncoder(Protocol):
+    """A frozen sentence encoder (the service's MiniLM, `app.lsm.text_encoder.TextEncoder`), named by the
+    sha256 of its weights."""
+
+    sha256: str
+
+    def encode(self, texts: Sequence[str]) -> np.ndarray:
+        """Unit-norm embeddings, (len(texts), D)."""
+        ...
 
 
 @runtime_checkable

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.data.relations import (
+from app.grounding.box_relations import (
     BETWEEN_MAX_OFFSET,
     BETWEEN_MAX_SEPARATION,
     BETWEEN_MIN_SEPARATION,
@@ -89,7 +89,7 @@ _COLUMN = {name: j for j, name in enumerate(FEATURES)}
 
 # The context counts test coarse relation predicates (`related_mask`, `between_mask`: they describe the
 # anchor, not the target, so no label policy and no footprint overlap), with the one set of thresholds of
-# the box relations (`app.data.relations`).
+# the box relations (`app.grounding.box_relations`).
 SIBLING_RADIUS = 1.0  # metres: objects this close to the anchor's surface are its surroundings
 # "between": the gap is the middle of the segment joining the anchors' centres, this fraction off each end.
 BETWEEN_END_FRACTION = 0.1
@@ -128,15 +128,15 @@ class SceneBoxes:
 
 
 def surface_distances(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> np.ndarray:
-    """`app.data.relations.surface_distance` of every pair, for (A, 3) and (B, 3) corners -> (A, B)."""
+    """`app.grounding.box_relations.surface_distance` of every pair: (A, 3), (B, 3) corners -> (A, B)."""
     return surface_distance(Box(lo_a, hi_a).expand(1), Box(lo_b, hi_b).expand(0))
 
 
 def related_mask(relation: Relation, boxes: SceneBoxes, anchors: np.ndarray) -> np.ndarray:
     """(A, N): object n stands in `relation` to anchor `anchors[a]` (never to itself).
 
-    With the thresholds of `app.data.relations`: on: footprint centre over the anchor, bottom at its top
-    (within ON_SINK_TOLERANCE below, ON_GAP_TOLERANCE above) or on an internal support (at least
+    With the thresholds of `app.grounding.box_relations`: on: footprint centre over the anchor, bottom at its
+    top (within ON_SINK_TOLERANCE below, ON_GAP_TOLERANCE above) or on an internal support (at least
     INTERNAL_SUPPORT_MIN_HEIGHT over the anchor's base, under its top: any anchor may be a shelf); in: centre
     inside the box and smaller; above: centre over the footprint, bottom VERTICAL_MIN_GAP to VERTICAL_MAX_GAP
     over the top; below: centre under the footprint, top UNDER_CLEARANCE under the anchor's top and bottom

@@ -49,8 +49,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from app.data.relations import internal_support_reach
 from app.errors import NotFound
+from app.grounding.box_relations import internal_support_reach
 from app.grounding.relations import Relation
 from app.lsm.model import RELATION_INDEX, ROLE_ANCHOR, ROLE_OTHER, LSMBatch, LSMConfig
 from app.scene_graph.model import SceneGraph

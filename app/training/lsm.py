@@ -44,8 +44,8 @@ import numpy as np
 import torch
 
 from app.data.cases import GroundingCase, read_cases
-from app.data.relations import internal_support_reach
 from app.evaluation.metrics import gaussian_nll, nees
+from app.grounding.box_relations import internal_support_reach
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.interfaces import Grounder
 from app.grounding.mixture import UniformBox

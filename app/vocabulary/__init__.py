@@ -20,8 +20,8 @@ window" are objects?), the case builder (how may a speaker call a labelled objec
   the synonyms and the generic words), the parser's lexicon of possible mentions.
 - `in_classes(label, names)`: whether a label, or its head noun, is of one of the classes a set of names
   names ("file cabinets" is a cabinet, "chest of drawers" a dresser and not a drawer): how the label
-  policies of the box relations (`app.data.relations`: walls, containers, seats) and of the conventions
-  read a map's labels.
+  policies of the box relations (`app.grounding.box_relations`: walls, containers, seats) and of the
+  conventions read a map's labels.
 - Regions: `ROOM_WORDS` (read as a region even when the map names none), `STOREY_WORDS`, and
   `regions_named(regions, phrase)`, the one rule for which of a map's regions a region phrase names (the
   proposers, the broad term); the parser reads region names through `normalise`, as it reads utterances.
