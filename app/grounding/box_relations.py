@@ -157,11 +157,13 @@ class Box:
 
     @property
     def center(self) -> np.ndarray:
-        return 0.5 * (self.lo + self.hi)
+        center: np.ndarray = 0.5 * (self.lo + self.hi)
+        return center
 
     @property
     def size(self) -> np.ndarray:
-        return self.hi - self.lo
+        size: np.ndarray = self.hi - self.lo
+        return size
 
     def take(self, index: np.ndarray) -> Box:
         """The boxes selected by an index array or mask over the leading axis."""
@@ -301,9 +303,10 @@ def anchor_allowed(relation: Relation, label: str) -> bool:
 
 def footprint_contains(anchor: Box, point_xy: np.ndarray, margin: float = 0.0) -> np.ndarray:
     """Whether the xy point lies in the anchor's footprint grown by `margin` on every side."""
-    return np.all(
+    inside: np.ndarray = np.all(
         (point_xy >= anchor.lo[..., :2] - margin) & (point_xy <= anchor.hi[..., :2] + margin), axis=-1
     )
+    return inside
 
 
 def footprint_intersection(a: Box, b: Box) -> np.ndarray:
@@ -311,45 +314,53 @@ def footprint_intersection(a: Box, b: Box) -> np.ndarray:
     side = np.clip(
         np.minimum(a.hi[..., :2], b.hi[..., :2]) - np.maximum(a.lo[..., :2], b.lo[..., :2]), 0.0, None
     )
-    return side[..., 0] * side[..., 1]
+    area: np.ndarray = side[..., 0] * side[..., 1]
+    return area
 
 
 def footprint_area(a: Box) -> np.ndarray:
-    return np.prod(a.size[..., :2], axis=-1)
+    area: np.ndarray = np.prod(a.size[..., :2], axis=-1)
+    return area
 
 
 def footprint_overlap(a: Box, b: Box) -> np.ndarray:
     """Intersection over the smaller footprint, IoM = |F_a ∩ F_b| / min(|F_a|, |F_b|), in [0, 1]."""
     smaller = np.minimum(footprint_area(a), footprint_area(b))
-    return footprint_intersection(a, b) / np.maximum(smaller, 1e-9)
+    overlap: np.ndarray = footprint_intersection(a, b) / np.maximum(smaller, 1e-9)
+    return overlap
 
 
 def footprint_iou(a: Box, b: Box) -> np.ndarray:
     """Intersection over union of the two footprints."""
     inter = footprint_intersection(a, b)
-    return inter / np.maximum(footprint_area(a) + footprint_area(b) - inter, 1e-9)
+    iou: np.ndarray = inter / np.maximum(footprint_area(a) + footprint_area(b) - inter, 1e-9)
+    return iou
 
 
 def height_overlap(a: Box, b: Box) -> np.ndarray:
     """Length of the intersection of the two boxes' height ranges (negative: the gap between them)."""
-    return np.minimum(a.hi[..., 2], b.hi[..., 2]) - np.maximum(a.lo[..., 2], b.lo[..., 2])
+    overlap: np.ndarray = np.minimum(a.hi[..., 2], b.hi[..., 2]) - np.maximum(a.lo[..., 2], b.lo[..., 2])
+    return overlap
 
 
 def volume_overlap(a: Box, b: Box) -> np.ndarray:
     """Volume of the intersection of the two boxes."""
     side = np.clip(np.minimum(a.hi, b.hi) - np.maximum(a.lo, b.lo), 0.0, None)
-    return np.prod(side, axis=-1)
+    volume: np.ndarray = np.prod(side, axis=-1)
+    return volume
 
 
 def surface_distance(a: Box, b: Box) -> np.ndarray:
     """Distance between the boxes' surfaces, d = ||max(0, lo_a - hi_b, lo_b - hi_a)||; 0 where they touch."""
     gap = np.maximum(0.0, np.maximum(a.lo - b.hi, b.lo - a.hi))
-    return np.linalg.norm(gap, axis=-1)
+    distance: np.ndarray = np.linalg.norm(gap, axis=-1)
+    return distance
 
 
 def centre_distance(a: Box, b: Box, dims: int = 3) -> np.ndarray:
     """Distance between the boxes' centres, over the first `dims` axes (2: in the floor plane)."""
-    return np.linalg.norm(a.center[..., :dims] - b.center[..., :dims], axis=-1)
+    distance: np.ndarray = np.linalg.norm(a.center[..., :dims] - b.center[..., :dims], axis=-1)
+    return distance
 
 
 def top_in_upper_band(target: Box, anchor: Box, fraction: float) -> np.ndarray:
@@ -360,7 +371,8 @@ def top_in_upper_band(target: Box, anchor: Box, fraction: float) -> np.ndarray:
 
 def fits_inside(target: Box, anchor: Box) -> np.ndarray:
     """Whether the target is smaller than the anchor along every axis."""
-    return np.all(target.size < anchor.size, axis=-1)
+    fits: np.ndarray = np.all(target.size < anchor.size, axis=-1)
+    return fits
 
 
 def is_on(
@@ -423,7 +435,8 @@ def is_in(target: Box, anchor: Box, rule: InRule = IN_RULE) -> np.ndarray:
         smaller = fits_inside(target, anchor)
     else:
         smaller = np.prod(target.size, axis=-1) < np.prod(anchor.size, axis=-1)
-    return centre_inside & z_inside & smaller
+    inside: np.ndarray = centre_inside & z_inside & smaller
+    return inside
 
 
 def _hangs(gap: np.ndarray, target: Box, anchor: Box, rule: VerticalRule) -> np.ndarray:
@@ -471,7 +484,8 @@ def is_below(
         & (target.hi[..., 2] <= anchor.hi[..., 2] - beneath.top_clearance)
         & (target.lo[..., 2] <= anchor.lo[..., 2] + beneath.base_tolerance)
     )
-    return hanging | under
+    below: np.ndarray = hanging | under
+    return below
 
 
 def is_near(
@@ -488,7 +502,8 @@ def is_near(
 def _extent_along(box: Box, direction_xy: np.ndarray) -> np.ndarray:
     """Half length of the box's footprint projected on a unit xy direction: h_x |u_x| + h_y |u_y|."""
     half = 0.5 * box.size[..., :2]
-    return np.sum(half * np.abs(direction_xy), axis=-1)
+    extent: np.ndarray = np.sum(half * np.abs(direction_xy), axis=-1)
+    return extent
 
 
 def is_between(target: Box, first: Box, second: Box) -> np.ndarray:
@@ -516,7 +531,8 @@ def is_between(target: Box, first: Box, second: Box) -> np.ndarray:
     z_hi = np.maximum(first.hi[..., 2], second.hi[..., 2])
     z_ok = (target.lo[..., 2] <= z_hi) & (target.hi[..., 2] >= z_lo)
     separated = (length >= BETWEEN_MIN_SEPARATION) & (length <= BETWEEN_MAX_SEPARATION)
-    return separated & in_gap & (np.abs(d) <= BETWEEN_MAX_OFFSET) & z_ok
+    between: np.ndarray = separated & in_gap & (np.abs(d) <= BETWEEN_MAX_OFFSET) & z_ok
+    return between
 
 
 def hull_occupancy(target: Box, first: Box, second: Box, grid: int = HULL_GRID) -> np.ndarray:
@@ -546,7 +562,8 @@ def hull_occupancy(target: Box, first: Box, second: Box, grid: int = HULL_GRID) 
         lower = np.maximum(lower, np.where(a < 0, bound, -np.inf).max(axis=-1))
         infeasible = np.any((a == 0) & (b < 0), axis=-1)
         upper = np.where(infeasible, -np.inf, upper)
-    return np.mean(lower <= upper, axis=-1)
+    occupancy: np.ndarray = np.mean(lower <= upper, axis=-1)
+    return occupancy
 
 
 def axis_between(
@@ -602,9 +619,13 @@ def axis_between(
         height = np.clip(height_overlap(target, anchor), 0.0, None)
         area_t = (ha - la) * target.size[..., 2]
         area_a = (hb - lb) * anchor.size[..., 2]
-        return width * height / np.maximum(np.minimum(area_t, area_a), 1e-9)
+        iom: np.ndarray = width * height / np.maximum(np.minimum(area_t, area_a), 1e-9)
+        return iom
 
-    return along & (cross_iom(first) > min_cross_overlap) & (cross_iom(second) > min_cross_overlap)
+    between: np.ndarray = (
+        along & (cross_iom(first) > min_cross_overlap) & (cross_iom(second) > min_cross_overlap)
+    )
+    return between
 
 
 def _distances(anchors: Box, objects: Box, surface: bool) -> np.ndarray:
@@ -672,9 +693,10 @@ def ranked_ordinal_relations(
     k = min(depth, group.lo.shape[0])
 
     def clear(dist: np.ndarray, length: np.ndarray) -> np.ndarray:
-        return np.all(
+        is_clear: np.ndarray = np.all(
             np.abs(np.diff(dist, axis=1)) * length.mean(axis=1, keepdims=True) > min_scaled_gap, axis=1
         )
+        return is_clear
 
     closest = (order[:, 0] == 0) & clear(d_sorted[:, :k], l_sorted[:, :k])
     farthest = (order[:, -1] == 0) & clear(d_sorted[:, ::-1][:, :k], l_sorted[:, ::-1][:, :k])
@@ -706,7 +728,8 @@ def true_groundings(
     other_class = ~same
 
     def allowed(relation: Relation) -> np.ndarray:
-        return other_class & np.array([anchor_allowed(relation, lab) for lab in labels])
+        mask: np.ndarray = other_class & np.array([anchor_allowed(relation, lab) for lab in labels])
+        return mask
 
     reach = np.array([internal_support_reach(lab) for lab in labels])
     clearance = np.array([has_clearance_below(lab) for lab in labels])

@@ -177,7 +177,10 @@ class ProposerParams:
         """s / T for hypotheses with weight keys (H,), features (H, F), attribute agreement (H,) -> (H,)."""
         standard = (features - self.feature_mean) / self.feature_scale  # (H, F)
         weights = np.stack([self.weights[k] for k in keys])  # (H, F)
-        return (np.sum(standard * weights, axis=1) + self.attribute_weight * attribute) / self.temperature
+        logits: np.ndarray = (
+            np.sum(standard * weights, axis=1) + self.attribute_weight * attribute
+        ) / self.temperature
+        return logits
 
     def background_weight(self, utterance_features: np.ndarray) -> float:
         """beta = MIN_BACKGROUND_WEIGHT + (1 - MIN_BACKGROUND_WEIGHT) sigmoid(g' . v)."""
@@ -789,7 +792,8 @@ def _spread(params: ProposerParams, name: str | None) -> float:
 def softmax(scores: np.ndarray) -> np.ndarray:
     """exp(s_i - max s) / sum_j exp(s_j - max s)."""
     shifted = np.exp(scores - np.max(scores))
-    return shifted / shifted.sum()
+    probabilities: np.ndarray = shifted / shifted.sum()
+    return probabilities
 
 
 __all__ = [

@@ -47,7 +47,8 @@ def _box_covariance(obj: SceneObject, sigma_z: float) -> np.ndarray:
     """Uniform over the object's (yawed) footprint in x, y: R diag(dx^2/12, dy^2/12, sigma_z^2) R^T."""
     dx, dy, _ = obj.size
     rot = _rotation(obj.yaw)
-    return rot @ np.diag([dx * dx / 12.0, dy * dy / 12.0, sigma_z * sigma_z]) @ rot.T
+    covariance: np.ndarray = rot @ np.diag([dx * dx / 12.0, dy * dy / 12.0, sigma_z * sigma_z]) @ rot.T
+    return covariance
 
 
 class GeometricGrounder:

@@ -45,7 +45,8 @@ def project_to_pd(cov: np.ndarray, min_eigenvalue: float = MIN_EIGENVALUE_M2) ->
     eigvals, eigvecs = np.linalg.eigh(sym)
     clipped = np.maximum(eigvals, min_eigenvalue)
     out = (eigvecs * clipped[..., None, :]) @ np.swapaxes(eigvecs, -1, -2)
-    return 0.5 * (out + np.swapaxes(out, -1, -2))
+    symmetric: np.ndarray = 0.5 * (out + np.swapaxes(out, -1, -2))
+    return symmetric
 
 
 @dataclass(frozen=True)
@@ -63,7 +64,8 @@ class Gaussian:
         z = np.linalg.solve(chol, diff.T)  # (3, N): L^-1 (x - mu)
         maha = np.sum(z * z, axis=0)  # (N,)
         log_det = 2.0 * np.sum(np.log(np.diag(chol)))
-        return -0.5 * (maha + log_det + 3 * _LOG_2PI)
+        log_density: np.ndarray = -0.5 * (maha + log_det + 3 * _LOG_2PI)
+        return log_density
 
 
 @dataclass(frozen=True)
@@ -82,7 +84,8 @@ class UniformBox:
 
     @property
     def size(self) -> np.ndarray:
-        return self.high - self.low  # (3,)
+        size: np.ndarray = self.high - self.low  # (3,)
+        return size
 
     @property
     def volume(self) -> float:
@@ -90,7 +93,8 @@ class UniformBox:
 
     @property
     def center(self) -> np.ndarray:
-        return 0.5 * (self.low + self.high)  # (3,)
+        center: np.ndarray = 0.5 * (self.low + self.high)  # (3,)
+        return center
 
     @property
     def covariance(self) -> np.ndarray:
@@ -100,7 +104,8 @@ class UniformBox:
     def contains(self, points: np.ndarray) -> np.ndarray:
         """Whether each row lies in the closed box, (N,)."""
         pts = np.atleast_2d(np.asarray(points, dtype=np.float64))
-        return np.all((pts >= self.low) & (pts <= self.high), axis=1)
+        inside: np.ndarray = np.all((pts >= self.low) & (pts <= self.high), axis=1)
+        return inside
 
     def logpdf(self, points: np.ndarray) -> np.ndarray:
         """-log vol inside the box, -inf outside, (N,)."""
@@ -253,12 +258,16 @@ class GaussianMixture:
         peak = np.max(terms, axis=1, keepdims=True)  # (N, 1)
         finite = np.where(np.isfinite(peak), peak, 0.0)
         with np.errstate(divide="ignore"):
-            return (finite + np.log(np.sum(np.exp(terms - finite), axis=1, keepdims=True)))[:, 0]
+            log_density: np.ndarray = (
+                finite + np.log(np.sum(np.exp(terms - finite), axis=1, keepdims=True))
+            )[:, 0]
+            return log_density
 
     def mean(self) -> np.ndarray:
         """E[x] = sum_k w_k mu_k + sum_b v_b c_b (c_b the boxes' centres)."""
         centres = 0.5 * (self.box_lows + self.box_highs)
-        return self.weights @ self.means + self.box_weights @ centres
+        mean: np.ndarray = self.weights @ self.means + self.box_weights @ centres
+        return mean
 
     def covariance(self) -> np.ndarray:
         """The moment-matched covariance, E[x x^T] - E[x] E[x]^T over every term, (3, 3)."""
@@ -275,7 +284,8 @@ class GaussianMixture:
             "b,bij->ij", self.box_weights, box_covs + np.einsum("bi,bj->bij", centres, centres)
         )
         mu = self.mean()
-        return second - np.outer(mu, mu)
+        covariance: np.ndarray = second - np.outer(mu, mu)
+        return covariance
 
     def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """n draws, shape (n, 3)."""

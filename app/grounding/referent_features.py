@@ -120,11 +120,13 @@ class SceneBoxes:
 
     @property
     def size(self) -> np.ndarray:
-        return np.maximum(self.hi - self.lo, MIN_SIZE)  # (N, 3)
+        size: np.ndarray = np.maximum(self.hi - self.lo, MIN_SIZE)  # (N, 3)
+        return size
 
     @property
     def center(self) -> np.ndarray:
-        return 0.5 * (self.lo + self.hi)  # (N, 3)
+        center: np.ndarray = 0.5 * (self.lo + self.hi)  # (N, 3)
+        return center
 
 
 def surface_distances(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray) -> np.ndarray:
@@ -149,6 +151,7 @@ def related_mask(relation: Relation, boxes: SceneBoxes, anchors: np.ndarray) -> 
     over = footprint_contains(anchor, center[None, :, :2])  # (A, N): footprint centre over the anchor's
     bottom, top = boxes.lo[None, :, 2], boxes.hi[None, :, 2]  # (1, N)
     a_bottom, a_top = lo_a[:, None, 2], hi_a[:, None, 2]  # (A, 1)
+    mask: np.ndarray  # (A, N)
     if relation is Relation.ON:
         on_top = (bottom >= a_top - ON_SINK_TOLERANCE) & (bottom <= a_top + ON_GAP_TOLERANCE)
         inside = (bottom >= a_bottom + INTERNAL_SUPPORT_MIN_HEIGHT) & (bottom < a_top)
@@ -179,7 +182,7 @@ def between_mask(boxes: SceneBoxes, pairs: np.ndarray) -> np.ndarray:
     closest = a[:, None] + t[..., None] * ab[:, None]  # (P, N, 2)
     offset = np.linalg.norm(c[None] - closest, axis=-1)  # (P, N)
     middle = (t > BETWEEN_END_FRACTION) & (t < 1.0 - BETWEEN_END_FRACTION)
-    mask = middle & (offset <= BETWEEN_MAX_OFFSET)
+    mask: np.ndarray = middle & (offset <= BETWEEN_MAX_OFFSET)
     rows = np.arange(len(pairs))
     mask[rows, pairs[:, 0]] = False
     mask[rows, pairs[:, 1]] = False
@@ -187,7 +190,8 @@ def between_mask(boxes: SceneBoxes, pairs: np.ndarray) -> np.ndarray:
 
 
 def _log_distance(d: np.ndarray) -> np.ndarray:
-    return np.log(np.clip(d, *DISTANCE_RANGE))
+    log_distance: np.ndarray = np.log(np.clip(d, *DISTANCE_RANGE))
+    return log_distance
 
 
 def anchor_features(
@@ -286,7 +290,7 @@ def hypothesis_features(
     per_anchor[:, _COLUMN["target_kind"]] = siblings[unique]
     stacked = per_anchor[inverse.reshape(groups.shape)]  # (H, k, F)
     stacked[:, :, :3] = label_features
-    out = stacked.mean(axis=1)
+    out: np.ndarray = stacked.mean(axis=1)
     out[:, _COLUMN["target_kind"]] = stacked[:, :, _COLUMN["target_kind"]].max(axis=1)
     if groups.shape[1] == 2:
         in_gap = between_mask(boxes, groups)  # (H, N)
@@ -396,4 +400,5 @@ def attribute_scores(
             if np.ptp(value) > 1e-6:
                 rank = np.argsort(np.argsort(value))  # 0 for the smallest
                 scores[i] = sign * (2.0 * rank / (len(candidates) - 1) - 1.0)
-    return scores.mean(axis=0)
+    mean_scores: np.ndarray = scores.mean(axis=0)
+    return mean_scores
