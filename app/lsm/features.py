@@ -223,7 +223,7 @@ def region_frame(
     from t to the farther face of the scene's bounding box on each axis.
     """
     margin = np.array([cfg.region_margin_xy, cfg.region_margin_xy, cfg.region_margin_z])
-    scale = np.maximum(np.maximum(high, -low) + margin, cfg.region_min_half_extent)
+    scale: np.ndarray = np.maximum(np.maximum(high, -low) + margin, cfg.region_min_half_extent)
     if cfg.ordinal_scene_frame and scene_bounds is not None and relation in ORDINAL_RELATIONS:
         scene_low, scene_high = scene_bounds
         scale = np.maximum(scale, np.maximum(-scene_low, scene_high))
@@ -277,7 +277,8 @@ def make_sample(
     rotation = rotation_z(yaw)  # world = R local + origin
 
     def local(points: np.ndarray) -> np.ndarray:
-        return (points - origin) @ rotation  # (N, 3): R^T (p - o) row by row
+        local_points: np.ndarray = (points - origin) @ rotation  # (N, 3): R^T (p - o) row by row
+        return local_points
 
     kept_centers = np.concatenate([local(anchor_centers), local(arrays.centers[others])])  # (n, 3)
     kept_sizes = np.concatenate(

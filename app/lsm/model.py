@@ -349,7 +349,8 @@ def gaussian_nll(mean: torch.Tensor, chol: torch.Tensor, target: torch.Tensor) -
     diff = (target - mean).unsqueeze(-1)  # (B, 3, 1)
     z = torch.linalg.solve_triangular(chol, diff, upper=False).squeeze(-1)  # (B, 3): L^-1 (y - mu)
     log_det = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)  # (B,)
-    return 0.5 * (log_det + (z * z).sum(-1) + 3 * _LOG_2PI)
+    nll: torch.Tensor = 0.5 * (log_det + (z * z).sum(-1) + 3 * _LOG_2PI)
+    return nll
 
 
 def l1_error(mean: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -93,7 +93,8 @@ def camera_frame_directions(config: CameraConfig) -> np.ndarray:
         ],
         axis=-1,
     ).reshape(-1, 3)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    unit: np.ndarray = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return unit
 
 
 def rotate_to_world(directions: np.ndarray, yaw: float, pitch: float) -> np.ndarray:
@@ -103,7 +104,8 @@ def rotate_to_world(directions: np.ndarray, yaw: float, pitch: float) -> np.ndar
     forward = np.array([cp * cy, cp * sy, sp])
     left = np.array([-sy, cy, 0.0])
     up = np.array([-sp * cy, -sp * sy, cp])
-    return directions @ np.stack([forward, left, up])
+    world: np.ndarray = directions @ np.stack([forward, left, up])
+    return world
 
 
 @dataclass(frozen=True)
@@ -118,7 +120,8 @@ class RayCast:
     @property
     def free_flat(self) -> np.ndarray:
         """(F,) the free voxels the rays entered before their hit (a voxel may repeat)."""
-        return self.voxels[self.free_mask]
+        free: np.ndarray = self.voxels[self.free_mask]
+        return free
 
     @property
     def free_ray(self) -> np.ndarray:
@@ -207,7 +210,8 @@ class Observation:
     @property
     def hit_mask(self) -> np.ndarray:
         """(M,) bool: the voxel is occupied (some ray stopped on it)."""
-        return self.owner != FREE
+        hit: np.ndarray = self.owner != FREE
+        return hit
 
     def __len__(self) -> int:
         return len(self.flat_idx)

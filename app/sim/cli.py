@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from app.sim.scenes import Episode
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     parser = subparsers.add_parser(
         "sim",
         help="closed-loop evaluation: a simulated robot drives the service, one session per method",

@@ -205,7 +205,8 @@ def shape_similarity(sizes: np.ndarray, target_size: np.ndarray, scale: float) -
     e = -np.sort(-np.maximum(np.asarray(sizes, dtype=np.float64).reshape(-1, 3), 1e-3), axis=1)  # (n, 3)
     t = -np.sort(-np.maximum(np.asarray(target_size, dtype=np.float64).reshape(3), 1e-3))  # (3,)
     gap = np.sum((np.log(e) - np.log(t)) ** 2, axis=1)
-    return np.exp(-gap / scale**2)
+    similarity: np.ndarray = np.exp(-gap / scale**2)
+    return similarity
 
 
 def lookalike_weights(
@@ -325,7 +326,8 @@ class Segmenter:
 
     def labels(self, observation: Observation, rng: np.random.Generator) -> np.ndarray:
         """(M,) label names of the observed voxels."""
-        return self._names[self.label_codes(observation, rng)]
+        names: np.ndarray = self._names[self.label_codes(observation, rng)]
+        return names
 
 
 @dataclass

@@ -60,7 +60,7 @@ def _pick_waypoint(
     config: PolicyConfig,
 ) -> np.ndarray | None:
     for k in rng.integers(len(points), size=config.waypoint_tries):
-        candidate = points[k]
+        candidate: np.ndarray = points[k]
         far_enough = np.linalg.norm(candidate - position) >= config.min_waypoint_distance
         if far_enough and world.segment_is_free(position, candidate):
             return candidate

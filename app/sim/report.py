@@ -55,7 +55,7 @@ def metrics_document(
     config = result.config
     n_seen = sum(r.target_seen for r in result.records)
     told = config.sensor_model
-    return _clean(
+    document: dict[str, Any] = _clean(
         {
             "command": command,
             "config": {
@@ -98,6 +98,7 @@ def metrics_document(
             },
         }
     )
+    return document
 
 
 def language_counts(result: SimResult) -> dict[str, dict[str, int]]:

@@ -208,7 +208,8 @@ def _disk_offsets(radius_cells: float) -> np.ndarray:
     reach = math.ceil(radius_cells + 0.5)
     i, j = np.mgrid[-reach : reach + 1, -reach : reach + 1]
     gap = np.hypot(np.maximum(np.abs(i) - 0.5, 0.0), np.maximum(np.abs(j) - 0.5, 0.0))
-    return (gap < radius_cells) | ((i == 0) & (j == 0))
+    disk: np.ndarray = (gap < radius_cells) | ((i == 0) & (j == 0))
+    return disk
 
 
 class SemanticVoxelWorld:
@@ -281,12 +282,14 @@ class SemanticVoxelWorld:
 
     def labels_of(self, owner_codes: np.ndarray) -> np.ndarray:
         """(M,) true labels of owner codes; FREE_LABEL for FREE."""
-        return self._label_table[np.asarray(owner_codes)]
+        labels: np.ndarray = self._label_table[np.asarray(owner_codes)]
+        return labels
 
     @property
     def occupied(self) -> np.ndarray:
         """(nx, ny, nz) bool."""
-        return self.owner != FREE
+        occupied: np.ndarray = self.owner != FREE
+        return occupied
 
     # --- floor -------------------------------------------------------------------------------------------
 
@@ -306,7 +309,7 @@ class SemanticVoxelWorld:
         if self.robot.radius > 0:
             disk = _disk_offsets(self.robot.radius / self.grid.voxel_size)
             obstacle = ndimage.binary_dilation(obstacle, structure=disk)
-        free = self._floor_area & ~obstacle
+        free: np.ndarray = self._floor_area & ~obstacle
         regions, n_regions = ndimage.label(free)  # 4-connected
         if n_regions > 1:
             sizes = np.bincount(regions.ravel())[1:]
@@ -330,7 +333,8 @@ class SemanticVoxelWorld:
         ij = np.floor((pts - np.asarray(self.grid.origin[:2])) / self.grid.voxel_size)
         inside = np.all((ij >= 0) & (ij < np.asarray(self.grid.shape[:2])), axis=1)
         ij = np.where(inside[:, None], ij, 0).astype(np.int64)
-        return inside & self.free_floor[ij[:, 0], ij[:, 1]]
+        free: np.ndarray = inside & self.free_floor[ij[:, 0], ij[:, 1]]
+        return free
 
     def segment_is_free(self, start: np.ndarray, end: np.ndarray) -> bool:
         """Whether the straight floor segment start -> end (xy) runs over free floor only (sampled at s/4)."""

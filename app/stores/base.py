@@ -71,7 +71,8 @@ class IdempotencyRecord:
 
     def pack(self) -> bytes:
         fields = [self.fingerprint, self.version, self.voxels_updated, self.voxels_outside, self.answer]
-        return msgpack.packb([*fields, self.at, self.commit, self.robot_id], use_bin_type=True)
+        packed: bytes = msgpack.packb([*fields, self.at, self.commit, self.robot_id], use_bin_type=True)
+        return packed
 
     @classmethod
     def unpack(cls, data: bytes) -> IdempotencyRecord:

@@ -415,7 +415,8 @@ class MemorySessionStore:
             "vis": pack_array(session.belief.vis),
             "idem": _packed_keys(entry.keys.items()),
         }
-        return msgpack.packb(snap, use_bin_type=True)
+        packed: bytes = msgpack.packb(snap, use_bin_type=True)
+        return packed
 
     # -- sessions -------------------------------------------------------------------------------------------
 
