@@ -76,25 +76,42 @@ class WorkerServed:
         raise self._elsewhere()
 
 
-def build_proposer(settings: Settings) -> HypothesisProposer:
-    """The default proposer: the calibrated built-in one, or the uniform lexical one (no model needed)."""
-    if settings.proposer == "lexical":
-        return LexicalProposer(max_hypotheses=settings.max_hypotheses)
+def _load_lsm(settings: Settings) -> Grounder:
+    from app.lsm.grounder import LSMGrounder
+    from app.lsm.text_encoder import default_text_encoder
+
+    encoder = default_text_encoder(settings.text_encoder_precision)
+    return LSMGrounder.load(settings.model_dir / "lsm", threads=settings.torch_threads, encoder=encoder)
+
+
+def _load_builtin(settings: Settings) -> HypothesisProposer:
     from app.grounding.builtin import BuiltinProposer
     from app.lsm.text_encoder import default_text_encoder
 
     return BuiltinProposer.load(default_text_encoder(settings.text_encoder_precision))
 
 
+def _describe_lsm(settings: Settings) -> Grounder:
+    from app.lsm.checkpoint import describe_checkpoint
+
+    return WorkerServed(describe_checkpoint(settings.model_dir / "lsm"))
+
+
+def _describe_builtin(settings: Settings) -> HypothesisProposer:
+    from app.grounding.builtin import DEFAULT_PARAMS_PATH, ProposerParams, describe_params
+
+    return WorkerServed(describe_params(ProposerParams.load(DEFAULT_PARAMS_PATH)))
+
+
 def build_sensors(settings: Settings, metrics: Metrics, *, in_workers: bool = False) -> Sensors:
     """The grounders named in `settings.grounders`, the built-in proposer and, with an endpoint, the LLM's.
 
-    `in_workers`: grounding worker processes serve the local models, so this process describes them from
-    their files (`WorkerServed`) instead of loading them; the LLM parts run here and need the built-in
-    proposer (their fallback) and the grounders loaded, so with an LLM endpoint everything is loaded.
+    `in_workers`: grounding worker processes serve the local models, so this process describes the LSM and
+    the built-in proposer from their files (`WorkerServed`) instead of loading them; the LLM parts run here
+    and need the built-in proposer (their fallback) and the grounders loaded, so with an LLM endpoint
+    everything is loaded.
     """
-    if in_workers and not settings.llm_url:
-        return _described_sensors(settings, metrics)
+    described = in_workers and not settings.llm_url
     grounders: dict[str, Grounder] = {}
     for name in dict.fromkeys([settings.grounder, *settings.grounders]):
         if name == "geometric":
@@ -102,15 +119,12 @@ def build_sensors(settings: Settings, metrics: Metrics, *, in_workers: bool = Fa
         elif name == "fixed":
             grounders[name] = FixedGrounder()
         elif name == "lsm":
-            from app.lsm.grounder import LSMGrounder
-            from app.lsm.text_encoder import default_text_encoder
-
-            grounders[name] = LSMGrounder.load(
-                settings.model_dir / "lsm",
-                threads=settings.torch_threads,
-                encoder=default_text_encoder(settings.text_encoder_precision),
-            )
-    builtin = build_proposer(settings)
+            grounders[name] = _describe_lsm(settings) if described else _load_lsm(settings)
+    builtin: HypothesisProposer
+    if settings.proposer == "lexical":  # the uniform proposer: no model needed
+        builtin = LexicalProposer(max_hypotheses=settings.max_hypotheses)
+    else:
+        builtin = _describe_builtin(settings) if described else _load_builtin(settings)
     proposers: dict[str, HypothesisProposer] = {"builtin": builtin}
     if settings.llm_url:
         from app.llm.baselines import LLMEndToEndGrounder, ScaffoldedLLMGrounder
@@ -132,35 +146,6 @@ def build_sensors(settings: Settings, metrics: Metrics, *, in_workers: bool = Fa
     return Sensors(
         grounders,
         proposers,
-        settings.grounder,
-        observer=metrics.observe_stage,
-        max_grounded=settings.max_grounded_hypotheses,
-    )
-
-
-def _described_sensors(settings: Settings, metrics: Metrics) -> Sensors:
-    """`build_sensors` for a request process whose workers load the models: the LSM and the built-in
-    proposer by their descriptions, the model-free parts as they are."""
-    grounders: dict[str, Grounder] = {}
-    for name in dict.fromkeys([settings.grounder, *settings.grounders]):
-        if name == "geometric":
-            grounders[name] = GeometricGrounder()
-        elif name == "fixed":
-            grounders[name] = FixedGrounder()
-        elif name == "lsm":
-            from app.lsm.checkpoint import describe_checkpoint
-
-            grounders[name] = WorkerServed(describe_checkpoint(settings.model_dir / "lsm"))
-    proposer: HypothesisProposer
-    if settings.proposer == "lexical":
-        proposer = LexicalProposer(max_hypotheses=settings.max_hypotheses)
-    else:
-        from app.grounding.builtin import DEFAULT_PARAMS_PATH, ProposerParams, describe_params
-
-        proposer = WorkerServed(describe_params(ProposerParams.load(DEFAULT_PARAMS_PATH)))
-    return Sensors(
-        grounders,
-        {"builtin": proposer},
         settings.grounder,
         observer=metrics.observe_stage,
         max_grounded=settings.max_grounded_hypotheses,
