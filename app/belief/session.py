@@ -6,9 +6,8 @@ grid, the target class, the label map (id -> name) and the default sensor model.
 persist sessions; `Session.observation_batch` / `detection_batch` turn a message into an
 `IncrementBatch` (flat voxel indices + increments) that a store logs and applies.
 
-Label matching: a robot label names the target when both have the same class key (`app.vocabulary`:
-CamelCase split, lower case, every word singular, synonyms folded, spaces dropped: "TrashCans" ==
-"garbage bin", "sofa" == "couch").
+Label matching: a robot label names the target when both are of the same class (`app.vocabulary.class_key`;
+the rule, and why a look-alike is only the same class, never a looser naming, is written there once).
 
 Mapped look-alikes: the scene graph never holds the target (that is why the robot searches), but it may
 hold other objects of the target's class (the other chairs when the target is a chair). A class-level
