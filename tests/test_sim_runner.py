@@ -49,6 +49,7 @@ from app.sim.runner import (
     run_method,
     run_simulation,
 )
+from app.sim.scenes import episodes_from_cases, load_layout_scenes
 from app.sim.service import running_service
 from app.vocabulary import class_key
 from tests.fake_llm_server import FakeLLMServer, Reply
@@ -205,6 +206,16 @@ def test_same_seed_same_frames_whatever_the_episode_order(perception: str) -> No
     assert all(frames_equal(a, b) for a, b in zip(forward, backward, strict=True))
     other_seed = prepare_episode(episodes[0], SimConfig(n_steps=6, seed=4, perception=perception))
     assert not frames_equal(forward[0], other_seed)
+
+
+def test_several_scenes_files_are_pooled_then_shuffled() -> None:
+    """One seeded permutation of all the files' episodes in file order; one file in a list is that file."""
+    single = [e.episode_id for e in load_episodes(CASES, seed=3)]
+    assert [e.episode_id for e in load_episodes([CASES], seed=3)] == single
+    raw = [e.episode_id for e in episodes_from_cases(CASES)]
+    raw += [s.episode(t).episode_id for s in load_layout_scenes(LAYOUT) for t in s.candidate_target_ids]
+    expected = [raw[k] for k in np.random.default_rng(3).permutation(len(raw))]
+    assert [e.episode_id for e in load_episodes([CASES, LAYOUT], seed=3)] == expected
 
 
 def test_perception_models_share_the_trajectory_not_the_labels() -> None:

@@ -122,7 +122,7 @@ def load_episodes(
       Language methods need utterances: build grounding cases from the layouts (`vlmap data build`).
     """
     if not isinstance(path, str | Path):
-        episodes = [e for p in path for e in load_episodes(p)]  # each file in its own order, then shuffled
+        episodes = [e for p in path for e in _episodes_of(Path(p))]  # pooled in file order, then shuffled
     else:
         episodes = _episodes_of(Path(path))
     if source is not None:
@@ -238,19 +238,23 @@ def prepare_episode(
 ) -> PreparedEpisode:
     """Build the world on the service's grid and compute the episode's frames; EpisodeSkipped if unfit."""
     if require_utterance and not episode.utterance:
-        raise EpisodeSkipped("no_utterance", episode.episode_id)
+        reason = "no_utterance"
+        raise EpisodeSkipped(reason, episode.episode_id)
     started = time.perf_counter()
     try:
         grid = episode.service_grid(voxel_size=config.voxel_size, margin=config.margin)
     except LimitExceeded as exc:
-        raise EpisodeSkipped("grid_too_large", str(exc)) from None
+        reason = "grid_too_large"
+        raise EpisodeSkipped(reason, str(exc)) from None
     world = episode.world(grid)
     target_flat = world.object_voxels(episode.target.id)
     if len(target_flat) == 0:
-        raise EpisodeSkipped("target_has_no_voxels", episode.episode_id)
+        reason = "target_has_no_voxels"
+        raise EpisodeSkipped(reason, episode.episode_id)
     free_floor = world.free_floor_area
     if free_floor < config.min_free_floor_m2:
-        raise EpisodeSkipped("too_little_free_floor", f"{episode.episode_id}: {free_floor:.2f} m^2")
+        reason = "too_little_free_floor"
+        raise EpisodeSkipped(reason, f"{episode.episode_id}: {free_floor:.2f} m^2")
     trajectory_rng, noise_rng = episode_rngs(config.seed, episode.episode_id)
     poses = trajectory(world, config.n_steps, trajectory_rng, config.policy)
     names = sorted({*world.labels, FREE_LABEL, UNKNOWN_LABEL, episode.target.label})
