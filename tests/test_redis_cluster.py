@@ -56,7 +56,8 @@ def _replica_of(client: Any, key: str) -> Any:
     ):
         if low <= slot <= high:
             return client.get_redis_connection(client.get_node(replica[0].decode(), replica[1]))
-    raise AssertionError(f"no replica serves slot {slot}")
+    msg = f"no replica serves slot {slot}"
+    raise AssertionError(msg)
 
 
 def test_a_failover_of_the_master_holding_a_session_mid_stream_applies_every_batch_once(
