@@ -503,54 +503,9 @@ class BuiltinProposer:
         anchor_mentions = [k for k, m in enumerate(mentions) if m.role == "anchor" and not m.negated]
         rows = _Rows()
         n_anchor = len(anchor_mentions)
-        for order, k in enumerate(anchor_mentions):
-            m = mentions[k]
-            if m.partner is not None and m.partner < k:
-                continue  # the pair is made from its first mention
-            fit = self._qualifier_fit(k, mentions, matches, boxes)  # (C,)
-            base = self._mention_row(
-                m, order, n_anchor, len(matches[k].indices), n_siblings, region_ids is not None
-            )
-            base[_COLUMN["has_qualifier"] - N_GEOMETRY] = float(
-                any(q.head == k and q.role == "qualifier" for q in mentions)
-            )
-            relation = m.relation or Relation.NEAR
-            spread = "view" if m.view_dependent else ("vague" if not m.relation_known else None)
-            if relation is Relation.BETWEEN:
-                self._pair_rows(rows, k, m, mentions, matches, base, spread)
-                continue
-            for slot, index in enumerate(matches[k].indices):
-                said, vague = _reading(relation, objects[index].label)
-                row = base.copy()
-                row[_COLUMN["qualifier_fit"] - N_GEOMETRY] = fit[slot]
-                if vague:
-                    row[_COLUMN["relation_vague"] - N_GEOMETRY] = 1.0
-                label = matches[k].label_features[slot][None]
-                agreement = float(matches[k].attribute[slot])
-                rows.add((int(index),), said, label, agreement, row, spread or ("vague" if vague else None))
-                if said is Relation.NEAR and n_siblings and not vague:
-                    alternative = row.copy()
-                    alternative[_COLUMN["reading_closest"] - N_GEOMETRY] = 1.0
-                    rows.add((int(index),), Relation.CLOSEST, label, agreement, alternative, None)
-        for k, m in enumerate(mentions):  # qualifiers read as anchors of the target
-            if m.role != "qualifier" or m.negated or m.relation in (None, Relation.BETWEEN):
-                continue
-            relation = m.relation or Relation.NEAR
-            base = self._mention_row(
-                m, n_anchor, n_anchor, len(matches[k].indices), n_siblings, region_ids is not None
-            )
-            base[_COLUMN["kind_nested"] - N_GEOMETRY] = 1.0
-            spread = "view" if m.view_dependent else ("vague" if not m.relation_known else None)
-            for slot, index in enumerate(matches[k].indices):
-                said, vague = _reading(relation, objects[index].label)
-                rows.add(
-                    (int(index),),
-                    said,
-                    matches[k].label_features[slot][None],
-                    float(matches[k].attribute[slot]),
-                    base,
-                    spread or ("vague" if vague else None),
-                )
+        region_named = region_ids is not None
+        self._anchor_rows(rows, anchor_mentions, mentions, matches, boxes, objects, n_siblings, region_named)
+        self._nested_rows(rows, mentions, matches, objects, n_anchor, n_siblings, region_named)
 
         region_row = np.zeros(len(MENTION_FEATURES))
         region_row[_COLUMN["kind_region"] - N_GEOMETRY] = 1.0
@@ -611,6 +566,77 @@ class BuiltinProposer:
             reason=reason,
             region_ignored=region_ignored,
         )
+
+    def _anchor_rows(
+        self,
+        rows: _Rows,
+        anchor_mentions: list[int],
+        mentions: list[Mention],
+        matches: list[_PhraseMatch],
+        boxes: SceneBoxes,
+        objects: list[SceneObject],
+        n_siblings: int,
+        region_named: bool,
+    ) -> None:
+        """The rows of the anchor mentions: one per candidate object (and its "closest" reading), or the
+        pairs of a "between"."""
+        n_anchor = len(anchor_mentions)
+        for order, k in enumerate(anchor_mentions):
+            m = mentions[k]
+            if m.partner is not None and m.partner < k:
+                continue  # the pair is made from its first mention
+            fit = self._qualifier_fit(k, mentions, matches, boxes)  # (C,)
+            base = self._mention_row(m, order, n_anchor, len(matches[k].indices), n_siblings, region_named)
+            base[_COLUMN["has_qualifier"] - N_GEOMETRY] = float(
+                any(q.head == k and q.role == "qualifier" for q in mentions)
+            )
+            relation = m.relation or Relation.NEAR
+            spread = "view" if m.view_dependent else ("vague" if not m.relation_known else None)
+            if relation is Relation.BETWEEN:
+                self._pair_rows(rows, k, m, mentions, matches, base, spread)
+                continue
+            for slot, index in enumerate(matches[k].indices):
+                said, vague = _reading(relation, objects[index].label)
+                row = base.copy()
+                row[_COLUMN["qualifier_fit"] - N_GEOMETRY] = fit[slot]
+                if vague:
+                    row[_COLUMN["relation_vague"] - N_GEOMETRY] = 1.0
+                label = matches[k].label_features[slot][None]
+                agreement = float(matches[k].attribute[slot])
+                rows.add((int(index),), said, label, agreement, row, spread or ("vague" if vague else None))
+                if said is Relation.NEAR and n_siblings and not vague:
+                    alternative = row.copy()
+                    alternative[_COLUMN["reading_closest"] - N_GEOMETRY] = 1.0
+                    rows.add((int(index),), Relation.CLOSEST, label, agreement, alternative, None)
+
+    def _nested_rows(
+        self,
+        rows: _Rows,
+        mentions: list[Mention],
+        matches: list[_PhraseMatch],
+        objects: list[SceneObject],
+        n_anchor: int,
+        n_siblings: int,
+        region_named: bool,
+    ) -> None:
+        """The rows of the qualifiers ("the table by the window"), each read as an anchor of the target."""
+        for k, m in enumerate(mentions):  # qualifiers read as anchors of the target
+            if m.role != "qualifier" or m.negated or m.relation in (None, Relation.BETWEEN):
+                continue
+            relation = m.relation or Relation.NEAR
+            base = self._mention_row(m, n_anchor, n_anchor, len(matches[k].indices), n_siblings, region_named)
+            base[_COLUMN["kind_nested"] - N_GEOMETRY] = 1.0
+            spread = "view" if m.view_dependent else ("vague" if not m.relation_known else None)
+            for slot, index in enumerate(matches[k].indices):
+                said, vague = _reading(relation, objects[index].label)
+                rows.add(
+                    (int(index),),
+                    said,
+                    matches[k].label_features[slot][None],
+                    float(matches[k].attribute[slot]),
+                    base,
+                    spread or ("vague" if vague else None),
+                )
 
     @staticmethod
     def _mention_row(

@@ -530,6 +530,25 @@ def parse_utterance(
     return _primary(utterance, region_names, mentions, target_index, regions, view_any, english)
 
 
+def _relata(tokens: list[str], items: list[_Item], position: int) -> tuple[list[tuple[int, bool]], int]:
+    """The relata of the relation phrase at `items[position]`: the mentions after it joined by "and"/"or"
+    (only determiners, attributes and coordinators between them), up to the next relation phrase, as (item
+    index, joined by "or"); and the index of the first item after them."""
+    relata: list[tuple[int, bool]] = []
+    cursor = position + 1
+    last_end = items[position].end
+    while cursor < len(items) and items[cursor].kind == "mention":
+        gap = tokens[last_end : items[cursor].start]
+        if relata and not any(w in _COORDINATORS for w in gap):
+            break
+        if any(w in _COPULAS for w in gap) or not all(w in _NOUN_PHRASE_GAP or w.isdigit() for w in gap):
+            break
+        relata.append((cursor, "or" in gap))
+        last_end = items[cursor].end
+        cursor += 1
+    return relata, cursor
+
+
 def _read_clause(
     tokens: list[str],
     items: list[_Item],
@@ -577,20 +596,7 @@ def _read_clause(
             position += 1
             continue
         phrase = item.relation
-        # The relata: the mentions after the phrase joined by "and"/"or" (only determiners, attributes and
-        # coordinators between them), up to the next relation phrase.
-        relata: list[tuple[int, bool]] = []  # (item index, joined by "or")
-        cursor = position + 1
-        last_end = item.end
-        while cursor < len(items) and items[cursor].kind == "mention":
-            gap = tokens[last_end : items[cursor].start]
-            if relata and not any(w in _COORDINATORS for w in gap):
-                break
-            if any(w in _COPULAS for w in gap) or not all(w in _NOUN_PHRASE_GAP or w.isdigit() for w in gap):
-                break
-            relata.append((cursor, "or" in gap))
-            last_end = items[cursor].end
-            cursor += 1
+        relata, cursor = _relata(tokens, items, position)
         head = subject if subject is not None else target_index
         role = "anchor" if head is None or head == target_index else "qualifier"
         relation, known = phrase.relation, phrase.known
