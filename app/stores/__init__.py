@@ -1,5 +1,10 @@
 """Durable homes for VL-Map sessions: one `SessionStore` interface, an in-memory store with an optional
-write-ahead log (`MemorySessionStore`) and a Redis store shared by replicas (`RedisSessionStore`)."""
+write-ahead log (`MemorySessionStore`) and a Redis store shared by replicas (`RedisSessionStore`).
+
+`__all__` is what the other rooms use: `open_store` and the store interface with the changes it applies
+(`Change`, `Delta` and its parts, `SessionView`) and its idempotency records, all defined in
+`app.stores.base`. `RedisSessionStore` is imported from `app.stores.redis_store` where wanted: `open_store`
+loads that module only for a redis:// URL, so that the memory store's users never do."""
 
 from __future__ import annotations
 
@@ -10,11 +15,30 @@ from app.stores.base import (
     DEFAULT_IDEMPOTENCY_KEYS,
     DEFAULT_IDEMPOTENCY_WINDOW_S,
     DEFAULT_TTL_S,
+    Change,
+    Delta,
+    Idempotency,
+    IdempotencyRecord,
+    LanguageDelta,
+    MetaDelta,
     SessionStore,
+    SessionView,
 )
 from app.stores.memory import MemorySessionStore
 
-__all__ = ["DEFAULT_TTL_S", "MemorySessionStore", "SessionStore", "open_store"]
+__all__ = [
+    "DEFAULT_TTL_S",
+    "Change",
+    "Delta",
+    "Idempotency",
+    "IdempotencyRecord",
+    "LanguageDelta",
+    "MemorySessionStore",
+    "MetaDelta",
+    "SessionStore",
+    "SessionView",
+    "open_store",
+]
 
 
 def open_store(
