@@ -1,7 +1,7 @@
 """Language grounding: hypotheses (which anchor, which relation) and their Gaussian mixture.
 
-A namespace of modules, re-exporting nothing: the belief and the stores import `mixture` alone, and a
-package-level import would load the proposers, the parser and their models' files with it. Other rooms
+A namespace of modules, re-exporting nothing: the belief and the stores import `mixture` alone, and
+package-level re-exports would import the proposers, the parser and the vocabulary with it. Other rooms
 import from the defining module:
 
 - `mixture`: `GaussianMixture`, `Gaussian`, `UniformBox`, `map_box`, `project_to_pd`;
