@@ -13,8 +13,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.api.app import create_app
-from app.api.routes.ground import to_response
 from app.api.bootstrap import Sensors
+from app.api.routes.ground import to_response
 from app.grounding.geometric import GeometricGrounder
 from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis
 from app.grounding.lexical import LexicalProposer

@@ -14,9 +14,9 @@ from schemathesis.specs.openapi.checks import negative_data_rejection, positive_
 
 from app.api.app import create_app
 from app.api.auth import digest, new_key
+from app.api.bootstrap import build_sensors
 from app.api.cli import openapi_spec
 from app.api.observability import Metrics
-from app.api.bootstrap import build_sensors
 from app.settings import Settings
 from app.stores import MemorySessionStore
 
