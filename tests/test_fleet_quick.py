@@ -30,10 +30,12 @@ def test_small_fleet_survives_redis_restart_kill_9_and_disconnects() -> None:
     for route, row in results["fault_redis"].items():
         assert set(row["errors"]) <= {"503"}, (route, row)
     assert results["fault_redis"]["POST /observations"]["ok"] > 0
-    # A killed replica: its clients see refused connections until it is back; nothing else fails.
+    # A killed replica: its clients see refused connections until its process serves again, then clean
+    # 503s while its models load (it is live but not ready: a load balancer routes by /readyz); nothing
+    # else fails.
     for route, row in results["fault_kill"].items():
         broken = {"ConnectionRefusedError", "ConnectionResetError", "IncompleteReadError", "BrokenPipeError"}
-        assert set(row["errors"]) <= broken, (route, row)
+        assert set(row["errors"]) <= broken | {"503"}, (route, row)
     # A client hanging up mid-upload harms nobody.
     for route, row in results["fault_disconnect"].items():
         assert row["errors"] == {}, (route, row)
