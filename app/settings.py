@@ -9,13 +9,17 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from app.belief.grid import DEFAULT_MAX_VOXELS
 from app.scene_graph.model import MAX_OBJECTS_CEILING, MAX_REGIONS_CEILING
+from app.stores.base import DEFAULT_IDEMPOTENCY_KEYS, DEFAULT_IDEMPOTENCY_WINDOW_S, DEFAULT_TTL_S
+from app.stores.redis_store import DEFAULT_MIRROR_BYTES
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
 class Settings(BaseSettings):
-    """Embedded defaults run the whole service on one machine with no external server."""
+    """Embedded defaults run the whole service on one machine with no external server. Where a setting is
+    a default of the code it configures, that default is named once, there, and used here."""
 
     model_config = SettingsConfigDict(env_prefix="VLMAP_", env_file=".env", extra="ignore")
 
@@ -83,10 +87,10 @@ class Settings(BaseSettings):
         return None if isinstance(value, str) and not value.strip() else value
 
     session_ttl_s: float = Field(
-        default=24 * 3600.0, gt=0, description="Sessions expire after this idle time."
+        default=DEFAULT_TTL_S, gt=0, description="Sessions expire after this idle time."
     )
     store_mirror_mib: int = Field(
-        default=256,
+        default=DEFAULT_MIRROR_BYTES >> 20,
         ge=0,
         description="Redis store: MiB of session layers each process keeps as the last state it read or "
         "wrote, so the replica that wrote last updates and summarises without reading them back (0: none).",
@@ -99,7 +103,7 @@ class Settings(BaseSettings):
     )
     max_sessions_per_robot: int = Field(default=16, ge=1, description="Live sessions per robot (429 above).")
     max_grid_voxels: int = Field(
-        default=16_000_000, ge=1, description="Voxels per session grid (memory guard)."
+        default=DEFAULT_MAX_VOXELS, ge=1, description="Voxels per session grid (memory guard)."
     )
     max_batch_voxels: int = Field(default=2_000_000, ge=1, description="Voxels per observation batch.")
     max_regions: int = Field(
@@ -150,12 +154,12 @@ class Settings(BaseSettings):
         description="How long a decode or grid download waits for a free slot before a 429 with Retry-After.",
     )
     idempotency_window_s: float = Field(
-        default=3600.0,
+        default=DEFAULT_IDEMPOTENCY_WINDOW_S,
         gt=0,
         description="How long a session remembers an Idempotency-Key and the answer it was given.",
     )
     idempotency_keys_per_session: int = Field(
-        default=1000,
+        default=DEFAULT_IDEMPOTENCY_KEYS,
         ge=1,
         description="Idempotency-Keys a session remembers at most (the oldest are forgotten first).",
     )
