@@ -81,11 +81,11 @@ VIS_LOG_MAX = 20.0
 LANG_LOG_SPAN = 25.0
 #: Probabilities from a detector are clipped to [eps, 1 - eps] so that p = 0 or 1 gives a finite increment.
 DETECTOR_EPS = 1e-6
-#: Voxels evaluated together by `language_log_likelihood` (bounds its temporaries to a few MB).
-LANGUAGE_BLOCK_VOXELS = 1 << 16
-#: The "energy" (minus the log-term) of a uniform box at a voxel outside it: log 0 as a finite number, so
-#: that sums and differences of energies stay free of inf - inf.
-_OUTSIDE = 1e30
+#: Largest share of the density at a voxel that `language_log_likelihood` may leave out, wherever the voxel
+#: can matter to the layer (its log-density is then exact to this many nats).
+LANGUAGE_TOLERANCE = 1e-5
+#: x-slabs of one Gaussian's support evaluated together (a few hundred kB of temporaries, in cache).
+_SLAB_GROUP = 8
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -117,74 +117,229 @@ def check_sensor_model(tp: float, fp: float) -> None:
 
 
 def language_log_likelihood(
-    grid: VoxelGrid, mixture: GaussianMixture, block_voxels: int = LANGUAGE_BLOCK_VOXELS
+    grid: VoxelGrid, mixture: GaussianMixture, span: float = LANG_LOG_SPAN
 ) -> np.ndarray:
-    """Equation (3)'s increment log(p(c_i) V) at every voxel centre, shape (N,), float64.
+    """Equation (3)'s increment relative to its best voxel, log(p(c_i) V) - max_j log(p(c_j) V), shape (N,)
+    float32, evaluated on the support of each term only.
 
-    Equal to `mixture.logpdf(grid.centers()) + log V`, computed slab by slab along x without building the
-    (N, 3) centre array: with Sigma_h = L_h L_h^T and A_h = L_h^-1 (lower triangular), z = A_h (c - mu_h)
-    has z_0 depending on x only, z_1 on (x, y) and only z_2 on all three, so the Mahalanobis term costs
-    three full-size operations per component; the log-sum-exp over components is skipped for a single
-    term. A uniform box b adds v_b / vol_b on the voxel centres inside it (a separable x, y, z test) and
-    nothing elsewhere; a voxel no term reaches gets a finite stand-in for log 0 (`_OUTSIDE`), which the
-    language layer's span clamps.
+    The language layer is defined up to an additive constant (`apply_language` shifts it), so the term is
+    returned with its maximum at 0 and in the layers' float32: values that matter lie within a few times
+    `span` of 0, where float32 resolves about 4e-6 nats.
+
+    Which voxels matter. After `apply_language` a voxel is above the floor only if lang_i + ll_i >
+    max(lang + ll) - span. The layer holds lang in [-span, 0], so that needs ll_i > max(ll) - 2 span: a voxel
+    the prior favours by up to `span` can survive a term up to 2 span below the term's best voxel (an
+    utterance that contradicts the earlier ones). Everywhere ll_i >= max(ll) - 2 span the density a term
+    leaves out is below LANGUAGE_TOLERANCE of the density kept, so the log-density is exact to 1e-5 there;
+    elsewhere the value is -inf or any value below max(ll) - 2 span, all of which the floor clamps alike.
+
+    The support (k-sigma box). With Sigma_h = L_h L_h^T and r the Mahalanobis radius, component h's term is
+    w_h N(x) V = exp(log_norm_h - r^2 / 2). Outside the ellipsoid r <= k_h it is below exp(log_norm_h - k_h^2
+    / 2), so choosing k_h^2 = 2 (log_norm_h - floor), floor = max(ll) - 2 span - log(n_terms / tolerance),
+    bounds everything left out at a voxel by tolerance * exp(max(ll) - 2 span). For the dominant component
+    (log_norm_h = max(ll)) with span 25, 5 terms and tolerance 1e-5 that is k = sqrt(2 (50 + 13.1)) = 11.2;
+    a component e^d weaker than the best gets k = sqrt(2 (63.1 - d)), none if d >= 63.1. (The mass left
+    out, P(chi^2_3 > 126) ~ 1e-26, is not what matters: the per-voxel density is.) max(ll) is bounded from
+    below before evaluating anything by each term at the voxel nearest its mean, which can only widen the
+    boxes. Each k-sigma box is cut into groups of x-slabs, each evaluated on the (y, z) rectangle bounding
+    the ellipsoid's sections there. The uniform boxes are constants on their voxel ranges (closed form).
+
+    Evaluation: with B_h = L_h^-1 / sqrt(2) and z = B_h (c - mu_h), z_0 depends on x only, z_1 on (x, y)
+    and z_2 = c_h(x, y) + b_h * (z - mu_z) on all three, so the term is exp(p0 + p1 u + p2 u^2) with
+    u = b_h (z - mu_z), p0 = log_norm_h - z_0^2 - z_1^2 - c_h^2 - R, p1 = -2 c_h, p2 = -1: one float64
+    matrix product (rows (x, y), columns z, inner dimension 3) per slab group (no cancellation: float64
+    keeps 1e-12 where c_h and u are large and opposite, as in strongly correlated covariances), then exp
+    in float32 and the sum of all terms as exp(term - R), R the lower bound of max(ll) above, in a float32
+    grid (the float64 grid or the log domain for spans beyond ~36 or ~340 nats), and one log. Cost: about
+    9 passes over the evaluated voxels and 3 over the grid, where a dense evaluation makes about 8 over
+    the whole grid per term.
     """
-    nx, ny, nz = grid.shape
-    xs, ys, zs = (grid.axis_centers(a) for a in range(3))
+    if not (math.isfinite(span) and span > 0):
+        msg = f"the language span must be a positive number of nats, got {span}"
+        raise InvalidInput(msg, "limits.lang_span")
+    axes = tuple(grid.axis_centers(a) for a in range(3))
     keep = mixture.weights > 0
     weights, means, covs = mixture.weights[keep], mixture.means[keep], mixture.covariances[keep]
-    box_keep = mixture.box_weights > 0
-    box_weights = mixture.box_weights[box_keep]
-    lows, highs = mixture.box_lows[box_keep], mixture.box_highs[box_keep]
     log_voxel = math.log(grid.voxel_volume)
+    box_terms: list[
+        tuple[tuple[slice, ...], float]
+    ] = []  # (voxel ranges, log-term) of each uniform box holding a voxel centre
+    for v, low, high in zip(mixture.box_weights, mixture.box_lows, mixture.box_highs, strict=True):
+        ranges = tuple(_centre_range(axes[a], low[a], high[a]) for a in range(3))
+        if v > 0 and all(r.stop > r.start for r in ranges):
+            box_terms.append((ranges, math.log(v) - math.log(float(np.prod(high - low))) + log_voxel))
+    n_terms = len(weights) + len(box_terms)
+    if n_terms == 0:
+        return np.full(grid.n_voxels, -np.inf, dtype=LAYER_DTYPE)
+    margin = 2.0 * span + math.log(n_terms / LANGUAGE_TOLERANCE)
     chol = np.linalg.cholesky(covs) if len(weights) else np.zeros((0, 3, 3))  # (K, 3, 3)
-    inv_chol = np.linalg.inv(chol) if len(weights) else chol  # (K, 3, 3), lower triangular
+    scaled = (np.linalg.inv(chol) if len(weights) else chol) / math.sqrt(2.0)  # B_h, lower triangular
     log_norm = (
         np.log(weights)
         - np.sum(np.log(np.diagonal(chol, axis1=1, axis2=2)), axis=1)
         - 1.5 * _LOG_2PI
         + log_voxel
     )  # (K,): log w_h - 1/2 log|Sigma_h| - 3/2 log 2pi + log V
-    box_log = np.log(box_weights) - np.log(np.prod(highs - lows, axis=1)) + log_voxel  # (B,)
-    inside = [
-        [(axis >= lows[b, a]) & (axis <= highs[b, a]) for a, axis in enumerate((xs, ys, zs))]
-        for b in range(len(box_weights))
+    # A lower bound of max(ll): every term at the voxel nearest its mean, every box's value.
+    origin, shape = np.asarray(grid.origin), np.asarray(grid.shape)
+    nearest = (
+        origin + (np.clip(np.floor((means - origin) / grid.voxel_size), 0, shape - 1) + 0.5) * grid.voxel_size
+    )
+    z = np.einsum("hij,hj->hi", scaled, nearest - means)
+    lower = max([*(log_norm - np.sum(z * z, axis=1)).tolist(), *(value for _, value in box_terms)])
+    supports = [
+        s
+        for h in range(len(weights))
+        if (
+            s := _component_support(
+                grid, axes, means[h], covs[h], scaled[h], float(log_norm[h]), lower - margin
+            )
+        )
     ]
-    # With B_h = A_h / sqrt(2), the "energy" e_h = |B_h (c - mu_h)|^2 - log_norm_h is -(log-term of h).
-    scaled = inv_chol / math.sqrt(2.0)
-    n_terms = len(weights) + len(box_weights)
-    out = np.empty(grid.n_voxels)
-    slab = max(1, block_voxels // (ny * nz))
-    for start in range(0, nx, slab):
-        stop = min(nx, start + slab)
-        energy = np.empty((n_terms, stop - start, ny, nz))  # (K + B, bx, ny, nz)
-        for h, (b, mu) in enumerate(zip(scaled, means, strict=True)):
-            dx = (xs[start:stop] - mu[0])[:, None, None]  # (bx, 1, 1)
-            dy = (ys - mu[1])[None, :, None]  # (1, ny, 1)
-            dz = (zs - mu[2])[None, None, :]  # (1, 1, nz)
-            z0 = b[0, 0] * dx
-            z1 = b[1, 0] * dx + b[1, 1] * dy  # (bx, ny, 1)
-            e = energy[h]
-            np.add(b[2, 0] * dx + b[2, 1] * dy, b[2, 2] * dz, out=e)  # z2, (bx, ny, nz)
-            np.square(e, out=e)
-            e += z0 * z0 + z1 * z1 - log_norm[h]
-        for j, (in_x, in_y, in_z) in enumerate(inside):
-            mask = in_x[start:stop, None, None] & in_y[None, :, None] & in_z[None, None, :]  # (bx, ny, nz)
-            energy[len(weights) + j] = np.where(mask, -box_log[j], _OUTSIDE)
-        block = out[start * ny * nz : stop * ny * nz].reshape(stop - start, ny, nz)
-        if n_terms == 1:
-            np.negative(energy[0], out=block)
-            continue
-        # log sum_h exp(-e_h) = -e_min + log sum_h exp(e_min - e_h)
-        lowest = energy.min(axis=0)  # (bx, ny, nz)
-        np.subtract(lowest, energy, out=energy)
-        # Terms below e^-50 of the largest change nothing in float64, and exp is ~10x slower where it
-        # underflows (arguments below about -745), which far-away voxels reach easily.
-        np.maximum(energy, -50.0, out=energy)
-        np.exp(energy, out=energy)
-        np.log(energy.sum(axis=0), out=block)
-        block -= lowest
-    return out
+    # Terms relative to R are summed as exp(term - R): exp(-margin), the smallest that counts, is a normal
+    # float32 up to margin ~87 and a normal float64 up to ~708; beyond (spans over ~340 nats) the sum is
+    # taken in the log domain.
+    mode = "float32" if margin <= 80.0 else "float64" if margin <= 700.0 else "log"
+    # R = `lower` first: nothing that counts underflows, and nothing overflows unless `lower` is more than
+    # ~88 nats below some evaluated voxel (a needle-thin covariance between voxel centres); then R is the
+    # terms' exact maximum on their supports and the sum is made again.
+    with np.errstate(over="ignore"):
+        acc = _accumulate(grid, supports, box_terms, lower, margin, mode)
+    if not math.isfinite(float(acc.max())):
+        exact = max([s.peak() for s in supports] + [value for _, value in box_terms])
+        acc = _accumulate(grid, supports, box_terms, exact, margin, mode)
+    flat = acc.reshape(-1)
+    if mode != "log":
+        with np.errstate(divide="ignore"):
+            np.log(flat, out=flat)
+    flat -= flat.max()
+    return flat.astype(LAYER_DTYPE, copy=False)
+
+
+def _accumulate(
+    grid: VoxelGrid,
+    supports: list[_Support],
+    box_terms: list[tuple[tuple[slice, ...], float]],
+    reference: float,
+    margin: float,
+    mode: str,
+) -> np.ndarray:
+    """sum_h exp(term_h - reference) over the terms, each on its support, grid-shaped ("float32" or
+    "float64"); with mode "log", its logarithm, summed by logaddexp."""
+    log = mode == "log"
+    dtype = LAYER_DTYPE if mode == "float32" else np.float64
+    acc = np.full(grid.shape, -np.inf) if log else np.zeros(grid.shape, dtype=dtype)
+    size = max((s.largest_group for s in supports), default=0)
+    work64, work = np.empty(size), np.empty(size, dtype=dtype)
+    for s in supports:
+        s.accumulate(acc, reference, work64, work, log)
+    for ranges, value in box_terms:
+        if log:
+            np.logaddexp(acc[ranges], value - reference, out=acc[ranges])
+        elif value - reference > -margin:
+            acc[ranges] += math.exp(value - reference)
+    return acc
+
+
+def _centre_range(axis: np.ndarray, low: float, high: float) -> slice:
+    """The indices of the (sorted) voxel centres in the closed interval [low, high]."""
+    return slice(int(np.searchsorted(axis, low, "left")), int(np.searchsorted(axis, high, "right")))
+
+
+@dataclass
+class _Support:
+    """One Gaussian's k-sigma box as groups of x-slabs, each with the (y, z) ranges bounding its ellipsoid
+    sections, and what the matrix products need: over the box's (x, y) rows log_norm - z_0^2 - z_1^2 and
+    c = z_2 - u, and u along z."""
+
+    box: tuple[slice, ...]
+    groups: list[tuple[slice, slice, slice]]  # ranges inside the box
+    head: np.ndarray  # (bx, by): log_norm - z_0^2 - z_1^2
+    c: np.ndarray  # (bx, by)
+    u: np.ndarray  # (bz,), increasing
+
+    def peak(self) -> float:
+        """The term's exact maximum over the box's voxels: along a column, -(c + u)^2 is largest at the
+        voxel centre nearest its vertex u = -c."""
+        c, u = self.c, self.u
+        if len(u) == 1:
+            return float(np.max(self.head - (c + u[0]) ** 2))
+        j = np.clip(np.searchsorted(u, -c), 1, len(u) - 1)
+        return float(np.max(self.head - np.minimum((c + u[j - 1]) ** 2, (c + u[j]) ** 2)))
+
+    @property
+    def largest_group(self) -> int:
+        return max(int(np.prod([r.stop - r.start for r in g])) for g in self.groups)
+
+    def accumulate(
+        self, acc: np.ndarray, reference: float, work64: np.ndarray, work: np.ndarray, log: bool
+    ) -> None:
+        """acc[box] += exp(term - reference) (log: acc[box] = logaddexp(acc[box], term - reference)), group
+        by group; `work64` and `work` (acc's dtype) hold the largest group."""
+        c, u = self.c, self.u
+        rows = np.stack([self.head - c * c - reference, -2.0 * c, np.full_like(c, -1.0)], axis=-1)
+        columns = np.stack([np.ones_like(u), u, u * u])  # (3, bz)
+        box = acc[self.box]
+        for gx, gy, gz in self.groups:
+            shape = (gx.stop - gx.start, gy.stop - gy.start, gz.stop - gz.start)
+            n = shape[0] * shape[1] * shape[2]
+            out64 = work64[:n].reshape(shape[0] * shape[1], shape[2])
+            np.matmul(rows[gx, gy].reshape(-1, 3), columns[:, gz], out=out64)  # term - reference
+            target = box[gx, gy, gz]
+            if log:
+                np.logaddexp(target, out64.reshape(shape), out=target)
+                continue
+            out = out64 if work.dtype == np.float64 else work[:n].reshape(out64.shape)
+            if out is not out64:
+                np.copyto(out, out64, casting="same_kind")
+            np.exp(out, out=out)
+            target += out.reshape(shape)
+
+
+def _component_support(
+    grid: VoxelGrid,
+    axes: tuple[np.ndarray, ...],
+    mean: np.ndarray,
+    cov: np.ndarray,
+    scaled: np.ndarray,
+    log_norm: float,
+    floor: float,
+) -> _Support | None:
+    """The voxels where the component's term can exceed `floor` (`_Support`), None if there are none."""
+    k2 = 2.0 * (log_norm - floor)
+    if k2 <= 0:
+        return None
+    half = np.sqrt(k2 * np.diag(cov))
+    box = tuple(_centre_range(axes[a], mean[a] - half[a], mean[a] + half[a]) for a in range(3))
+    if any(r.stop <= r.start for r in box):
+        return None
+    dx, dy, dz = (axes[a][box[a]] - mean[a] for a in range(3))
+    b = scaled
+    z1 = b[1, 0] * dx[:, None] + b[1, 1] * dy[None, :]
+    head = log_norm - (b[0, 0] * dx)[:, None] ** 2 - z1 * z1  # (bx, by)
+    c = b[2, 0] * dx[:, None] + b[2, 1] * dy[None, :]  # (bx, by)
+    u = b[2, 2] * dz  # (bz,), increasing
+    # Sections of the ellipsoid r^2 <= k2 at each x: centre and half-widths of their (y, z) bounding box,
+    # bounded over each group of x-slabs, as index ranges into dy and dz.
+    sxx = cov[0, 0]
+    r2 = np.maximum(k2 - dx * dx / sxx, 0.0)
+    starts = np.arange(0, len(dx), _SLAB_GROUP)
+    ranges = [np.stack([starts, np.minimum(starts + _SLAB_GROUP, len(dx))])]
+    for a, d in ((1, dy), (2, dz)):
+        centre = cov[0, a] / sxx * dx
+        reach = np.sqrt(r2 * (cov[a, a] - cov[0, a] ** 2 / sxx))
+        lo = np.minimum.reduceat(centre - reach, starts)
+        hi = np.maximum.reduceat(centre + reach, starts)
+        ranges.append(np.stack([np.searchsorted(d, lo, "left"), np.searchsorted(d, hi, "right")]))
+    bounds = np.concatenate(ranges).T.tolist()  # per group: x0, x1, y0, y1, z0, z1
+    groups = [
+        (slice(x0, x1), slice(y0, y1), slice(z0, z1))
+        for x0, x1, y0, y1, z0, z1 in bounds
+        if y1 > y0 and z1 > z0
+    ]
+    if not groups:
+        return None
+    return _Support(box, groups, head, c, u)
 
 
 def vision_increments(is_target: np.ndarray, tp: float, fp: float) -> np.ndarray:
@@ -227,15 +382,22 @@ def apply_increments(
 
 
 def apply_language(lang: np.ndarray, log_likelihood: np.ndarray, span: float) -> None:
-    """lang = max(lang + log_likelihood - max(lang + log_likelihood), -span), in place (see the docstring)."""
-    total = lang.astype(np.float64) + log_likelihood  # float64 so that far-away voxels do not round the mode
+    """lang = max(lang + log_likelihood - max(lang + log_likelihood), -span), in place (see the docstring).
+
+    A float32 term (`language_log_likelihood`'s, 0 at its best voxel) is added in float32: both operands
+    lie within a few spans of 0. Any other term is added in float64, so that a term far below 0 (an
+    absolute log-density far from the mixture) does not round the mode away.
+    """
+    if log_likelihood.dtype == np.float32 and lang.dtype == np.float32:
+        total = lang + log_likelihood
+    else:
+        total = lang.astype(np.float64) + log_likelihood
     peak = total.max()
     if not np.isfinite(peak):
         msg = "the language likelihood is not finite anywhere on the grid"
         raise InvalidInput(msg, "mixture")
     total -= peak
-    np.maximum(total, -span, out=total)
-    lang[:] = total
+    np.maximum(total, -span, out=lang, casting="same_kind")
 
 
 def posterior(lang: np.ndarray, vis: np.ndarray) -> np.ndarray:

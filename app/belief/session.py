@@ -26,6 +26,7 @@ store's `set_target_label`) names the class.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 import uuid
@@ -163,7 +164,8 @@ class BeliefState:
 
     def apply_utterance(self, mixture: GaussianMixture) -> int:
         """Equation (3) for one utterance, then shift and clamp the language layer; returns the version."""
-        fusion.apply_language(self.lang, language_log_likelihood(self.grid, mixture), self.limits.lang_span)
+        span = self.limits.lang_span
+        fusion.apply_language(self.lang, language_log_likelihood(self.grid, mixture, span), span)
         self.version += 1
         return self.version
 
@@ -186,8 +188,11 @@ class BeliefState:
         return BeliefState(self.grid, self.limits, self.lang.copy(), self.vis.copy(), self.version)
 
 
-def language_log_likelihood(grid: VoxelGrid, mixture: GaussianMixture) -> np.ndarray:
-    """`fusion.language_log_likelihood` with the mixture checked first (a bad one is the client's error)."""
+def language_log_likelihood(
+    grid: VoxelGrid, mixture: GaussianMixture, span: float = fusion.LANG_LOG_SPAN
+) -> np.ndarray:
+    """`fusion.language_log_likelihood` with the mixture checked first (a bad one is the client's error):
+    the term for a language layer of span up to `span` (the default layers')."""
     means, covs = np.asarray(mixture.means), np.asarray(mixture.covariances)
     if means.ndim != 2 or means.shape[1:] != (3,) or covs.shape != (len(means), 3, 3):
         msg = f"mixture needs (K, 3) means and (K, 3, 3) covariances, got {means.shape} and {covs.shape}"
@@ -205,7 +210,7 @@ def language_log_likelihood(grid: VoxelGrid, mixture: GaussianMixture) -> np.nda
         msg = "mixture boxes need high > low on every axis"
         raise InvalidInput(msg, "mixture")
     try:
-        return fusion.language_log_likelihood(grid, mixture)
+        return fusion.language_log_likelihood(grid, mixture, span)
     except np.linalg.LinAlgError as exc:
         msg = f"mixture covariances must be positive definite: {exc}"
         raise InvalidInput(msg, "mixture") from exc
@@ -250,11 +255,14 @@ class ObservationModel:
         self.grid = grid
         self.target_label = target_label
         self.sensor_model = sensor_model
-        # Over the whole grid, so that a batch is filtered by one lookup per voxel (np.isin cost ~10 ms/100k).
-        self._look_alike_mask: np.ndarray | None = None
-        if look_alikes is not None and len(look_alikes):
-            self._look_alike_mask = np.zeros(grid.n_voxels, dtype=bool)
-            self._look_alike_mask[np.asarray(look_alikes, dtype=np.int64)] = True
+        # Over the whole grid, so that a batch is filtered by one lookup per voxel (np.isin cost ~10 ms/100k);
+        # made on the first labelled batch (a store may build a model per update, e.g. for a detection).
+        self._look_alikes = (
+            np.asarray(look_alikes, dtype=np.int64) if look_alikes is not None and len(look_alikes) else None
+        )
+        self._look_alike_mask_made: np.ndarray | None = None
+        # (tp, fp) -> float32 increment of each label id (NaN: not in the label map), `_id_increments`
+        self._increment_tables: dict[tuple[float, float], np.ndarray] = {}
         self._target_key = class_key(target_label)
         if target_label and not self._target_key:
             msg = f"the target label {target_label!r} names no class"
@@ -275,6 +283,46 @@ class ObservationModel:
         if len(self._ids) and self._ids[-1] < _DENSE_LABEL_IDS:
             self._dense = np.full(int(self._ids[-1]) + 1, -1, dtype=np.int8)
             self._dense[self._ids] = self._id_classes
+
+    @property
+    def _look_alike_mask(self) -> np.ndarray | None:
+        """(N,) bool: the voxels of mapped look-alikes; None if there are none."""
+        if self._look_alikes is not None and self._look_alike_mask_made is None:
+            mask = np.zeros(self.grid.n_voxels, dtype=bool)
+            mask[self._look_alikes] = True
+            self._look_alike_mask_made = mask
+        return self._look_alike_mask_made
+
+    def _id_increments(self, labels: Labels, tp: float, fp: float) -> np.ndarray | None:
+        """Equation (4)'s increment of each label id in one lookup, (M,) float32: the same values as
+        `fusion.vision_increments(self.is_target(labels), tp, fp)`. None where that fast case does not
+        apply (no target class, string labels, sparse or no label map, invalid rates, any id not in the
+        map): the caller then takes that path, which raises exactly as before."""
+        if not (
+            self._dense is not None
+            and self._target_key
+            and isinstance(labels, np.ndarray)
+            and labels.ndim == 1
+            and labels.dtype.kind in "iu"
+            and len(labels)
+            and 0.0 < fp < tp < 1.0
+        ):
+            return None
+        table = self._increment_tables.get((tp, fp))
+        if table is None:
+            hit, miss = fusion.vision_increments(np.array([True, False]), tp, fp).tolist()
+            table = np.select([self._dense == 1, self._dense == 0], [hit, miss], np.nan).astype(
+                fusion.LAYER_DTYPE
+            )
+            if len(self._increment_tables) >= 8:
+                self._increment_tables.clear()
+            self._increment_tables[(tp, fp)] = table
+        if (labels.dtype.kind == "i" and labels.min() < 0) or labels.max() >= len(table):
+            return None  # an id not in the map (compared as the integers they are: no uint64 wraps)
+        increments = table.take(labels, mode="clip")
+        if math.isnan(float(increments.sum())):  # an id inside the table's range, not in the map
+            return None
+        return increments
 
     def _classes_of_ids(self, ids: np.ndarray) -> np.ndarray:
         """(M,) int8: 1 target, 0 another class, -1 not in the label map."""
@@ -392,16 +440,24 @@ class ObservationModel:
 
         Voxels of mapped look-alikes are left out: their labels are explained by the mapped object.
         """
-        is_target = self.is_target(labels)
-        idx, kept = self.voxel_indices(len(is_target), points, flat_idx, max_voxels, voxels)
         tp = self.sensor_model.tp if tp is None else tp
         fp = self.sensor_model.fp if fp is None else fp
-        increments = fusion.vision_increments(is_target[kept], tp, fp)
-        if self._look_alike_mask is not None:
-            explained = self._look_alike_mask[idx]
+        by_id = self._id_increments(labels, tp, fp)  # label ids: one table lookup
+        if by_id is None:
+            is_target = self.is_target(labels)
+            idx, kept = self.voxel_indices(len(is_target), points, flat_idx, max_voxels, voxels)
+            increments = fusion.vision_increments(is_target[kept], tp, fp)
+            n_outside = int(len(kept) - kept.sum())
+        else:
+            idx, kept = self.voxel_indices(len(by_id), points, flat_idx, max_voxels, voxels)
+            n_outside = int(len(kept) - np.count_nonzero(kept))
+            increments = by_id[kept] if n_outside else by_id
+        mask = self._look_alike_mask
+        if mask is not None:
+            explained = mask.take(idx)
             if explained.any():
-                idx, increments = idx[~explained], increments[~explained]
-        return IncrementBatch(idx, increments, int(len(kept) - kept.sum()))
+                idx, increments = _drop(idx, explained), _drop(increments, explained)
+        return IncrementBatch(idx, increments, n_outside)
 
     def detection_batch(
         self,
@@ -417,6 +473,17 @@ class ObservationModel:
         p = np.asarray(p_target, dtype=np.float64).reshape(-1)
         idx, kept = self.voxel_indices(len(p), points, flat_idx, max_voxels, voxels)
         return IncrementBatch(idx, fusion.detector_increments(p[kept], prior), int(len(kept) - kept.sum()))
+
+
+def _drop(values: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """values[~where]; a few dropped entries (a batch grazing a look-alike) by copying the runs between
+    them, which costs a third of a boolean compress."""
+    hits = np.flatnonzero(where)
+    if len(hits) > 64:
+        kept: np.ndarray = values[~where]
+        return kept
+    bounds = [-1, *hits.tolist(), len(values)]
+    return np.concatenate([values[a + 1 : b] for a, b in itertools.pairwise(bounds)])
 
 
 @dataclass
