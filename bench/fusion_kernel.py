@@ -1,9 +1,13 @@
-"""`python -m bench.fusion_kernel`: speed of the VL-Map belief on a 1 M-voxel grid, in process.
+"""`python -m bench.fusion_kernel`: the VL-Map belief's speed on a 1 M-voxel grid, in process, beside OctoMap.
 
-Prints what it measures (median and best of `--repeats` runs):
-- vision kernel: voxel updates per second of `fusion.apply_increments` with 100k-voxel batches (random
-  voxels, the cache-hostile case, and one contiguous 100k-voxel box), and of the whole observation path
-  (label ids -> increments -> apply) of `Session`;
+Prints what it measures (median, and the spread as best / p90 of the samples):
+- the observation path against the bare vision update on one stream of 100k-voxel batches (random voxels,
+  the cache-hostile case; label ids of which 5% name the target), alternating batch by batch: the whole
+  path of `Session` (label ids -> increments -> look-alike filter -> `fusion.apply_increments`) and the
+  bare update of the same batch's increments; and the bare update on one contiguous 100k-voxel box;
+- OctoMap on the same stream (`bench/octomap_harness.cpp`, built by `make bench` against Debian's
+  liboctomap-dev; skipped with a message when it is not built): `OcTree::updateNode(key, hit)` per voxel,
+  hit where the label names the target; the rates' ratio, and the bytes of state per voxel of both;
 - language update: one utterance with a 5-component mixture (`BeliefState.apply_utterance`);
 - summary: `summarize` with the scene graph of a real AI2-THOR room (25 objects);
 - memory per session: the layers' bytes and what tracemalloc sees for a whole stored session;
@@ -12,6 +16,8 @@ Prints what it measures (median and best of `--repeats` runs):
   (`app.sessions.changes`), on one event loop (a batch this large is not inline: it runs on a worker thread,
   as in the service); the Redis utterance includes its term's computation on the grid, as the service's
   utterance does before its update.
+
+`--json` prints one JSON object of the figures on stdout instead (the text goes to stderr).
 """
 
 from __future__ import annotations
@@ -23,11 +29,14 @@ import json
 import os
 import platform
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import anyio.to_thread
 import numpy as np
@@ -46,17 +55,76 @@ SCENE = (
 )
 SHAPE = (100, 100, 100)
 BATCH = 100_000
+HARNESS = Path(__file__).resolve().parent.parent / "var" / "bench" / "octomap_harness"
+TARGET_ID = 1  # "RemoteControl" in the bench's label map
 
 
 def timed(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
     """(median, best) seconds of `repeats` calls after one warm-up call."""
+    samples = timed_samples(fn, repeats)
+    return statistics.median(samples), min(samples)
+
+
+def timed_samples(fn: Callable[[], object], repeats: int) -> list[float]:
+    """Seconds of each of `repeats` calls after one warm-up call."""
     fn()
     samples = []
     for _ in range(repeats):
         start = time.perf_counter()
         fn()
         samples.append(time.perf_counter() - start)
-    return statistics.median(samples), min(samples)
+    return samples
+
+
+def spread(samples: list[float]) -> dict[str, float]:
+    """Median, best and 90th percentile of seconds."""
+    ordered = sorted(samples)
+    return {
+        "median": statistics.median(ordered),
+        "best": ordered[0],
+        "p90": ordered[min(len(ordered) - 1, round(0.9 * (len(ordered) - 1)))],
+    }
+
+
+def rates(samples: list[float], voxels: int) -> str:
+    s = spread(samples)
+    return (
+        f"{voxels / s['median'] / 1e6:.1f} M voxel updates/s median ({s['median'] * 1e3:.2f} ms; best "
+        f"{voxels / s['best'] / 1e6:.1f} M/s, p90 {voxels / s['p90'] / 1e6:.1f} M/s)"
+    )
+
+
+def write_stream(path: Path, grid: VoxelGrid, batches: list[tuple[np.ndarray, np.ndarray]]) -> None:
+    """The batches as bench/octomap_harness.cpp reads them: voxel coordinates and hit (label = target)."""
+    with path.open("wb") as out:
+        out.write(b"VLMS" + np.array([len(batches), BATCH], "<u4").tobytes())
+        out.write(np.array([grid.voxel_size], "<f8").tobytes())
+        for idx, labels in batches:
+            out.write(grid.flat_to_ijk(idx).astype("<u2").tobytes())
+            out.write((labels == TARGET_ID).astype("u1").tobytes())
+
+
+def run_octomap(
+    harness: Path, grid: VoxelGrid, batches: list[tuple[np.ndarray, np.ndarray]], say: Callable[[str], None]
+) -> dict[str, Any] | None:
+    """The harness's figures for the stream, None (with the reason said) where it is not built."""
+    if not harness.is_file():
+        say(
+            f"OctoMap: skipped, no harness at {harness} (`make bench` builds bench/octomap_harness.cpp when "
+            "a C++ compiler and Debian's liboctomap-dev are there)"
+        )
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        stream = Path(tmp) / "stream.bin"
+        write_stream(stream, grid, batches)
+        done = subprocess.run(
+            [str(harness), str(stream)], capture_output=True, text=True, timeout=900, check=False
+        )
+    if done.returncode != 0:
+        say(f"OctoMap: skipped, the harness failed ({done.returncode}): {done.stderr.strip()[:300]}")
+        return None
+    result: dict[str, Any] = json.loads(done.stdout)
+    return result
 
 
 def load_scene() -> SceneGraph:
@@ -80,9 +148,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--repeats", type=int, default=20, help="batches in the stream, samples per figure")
     parser.add_argument("--redis-url", default=None, help="also time the Redis store on this server")
+    parser.add_argument("--octomap-harness", type=Path, default=HARNESS, help="the built OctoMap harness")
+    parser.add_argument("--json", action="store_true", help="print one JSON object of the figures")
     args = parser.parse_args()
+    figures: dict[str, Any] = {}
+
+    def say(line: str) -> None:
+        print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
+
     keep_freed_buffers()  # as the service does (app.allocator)
     rng = np.random.default_rng(0)
     scene = load_scene()
@@ -90,54 +165,109 @@ def main() -> None:
     grid = VoxelGrid(origin=tuple(low - 0.5), shape=SHAPE, voxel_size=0.1)
     n = grid.n_voxels
     cpu = platform.processor() or platform.machine()
-    print(
-        f"platform: {cpu}, {os.cpu_count()} CPUs, 1-min load {os.getloadavg()[0]:.1f}, numpy {np.__version__}"
-    )
-    print(f"grid: {SHAPE} = {n:,} voxels of {grid.voxel_size} m, layers {np.dtype(fusion.LAYER_DTYPE).name}")
+    load = os.getloadavg()[0]
+    say(f"platform: {cpu}, {os.cpu_count()} CPUs, 1-min load {load:.1f}, numpy {np.__version__}")
+    say(f"grid: {SHAPE} = {n:,} voxels of {grid.voxel_size} m, layers {np.dtype(fusion.LAYER_DTYPE).name}")
+    figures.update(cpus=os.cpu_count(), load_1min_before=load, numpy=np.__version__, grid_voxels=n)
 
+    # One stream of batches for every method: random voxels, label ids 0-2 (1, a third, names the target).
+    label_map = {0: "floor", TARGET_ID: "RemoteControl", 2: "sofa"}
+    session = new_session("bench", scene, "remote control", label_map=label_map, grid=grid)
+    batches = [(rng.integers(0, n, BATCH), rng.integers(0, 3, BATCH)) for _ in range(args.repeats)]
+    tp, fp = session.sensor_model.tp, session.sensor_model.fp
+    bare_increments = [fusion.vision_increments(labels == TARGET_ID, tp, fp) for _, labels in batches]
     layer = np.zeros(n, dtype=fusion.LAYER_DTYPE)
-    random_idx = rng.integers(0, n, BATCH)
-    increments = fusion.vision_increments(rng.random(BATCH) < 0.05, 0.9, 0.05)
+    lo, hi = fusion.VIS_LOG_MIN, fusion.VIS_LOG_MAX
+
+    def bare(b: int) -> None:
+        fusion.apply_increments(layer, batches[b][0], bare_increments[b], lo, hi)
+
+    def path(b: int) -> None:
+        idx, labels = batches[b]
+        session.belief.apply_increments(session.observation_batch(labels, flat_idx=idx))
+
+    bare(0)  # warm-up
+    path(0)
+    bare_s: list[float] = []
+    path_s: list[float] = []
+    for b in range(len(batches)):  # alternating, batch by batch: the ratio is of the same moments
+        for fn, samples in ((bare, bare_s), (path, path_s)):
+            start = time.perf_counter()
+            fn(b)
+            samples.append(time.perf_counter() - start)
+    ratios = sorted(p / q for p, q in zip(path_s, bare_s, strict=True))
+    say(f"vision kernel alone (fusion.apply_increments), {BATCH:,} random voxels: {rates(bare_s, BATCH)}")
+    say(
+        f"observation path (label ids -> increments -> look-alike filter -> apply), same batches: "
+        f"{rates(path_s, BATCH)}; path / kernel time {statistics.median(ratios):.2f} median"
+    )
+    figures.update(
+        bare_update_updates_per_s=BATCH / spread(bare_s)["median"],
+        observation_path_updates_per_s=BATCH / spread(path_s)["median"],
+        observation_path_best_updates_per_s=BATCH / spread(path_s)["best"],
+        observation_path_p90_updates_per_s=BATCH / spread(path_s)["p90"],
+        observation_path_over_bare_time=statistics.median(ratios),
+    )
     box = np.zeros(SHAPE, dtype=bool)
     box[10:50, 10:60, 10:60] = True  # 40 * 50 * 50 = 100k voxels, like one camera frustum
     box_idx = np.flatnonzero(box)
-
-    def kernel(idx: np.ndarray) -> Callable[[], None]:
-        return lambda: fusion.apply_increments(layer, idx, increments, fusion.VIS_LOG_MIN, fusion.VIS_LOG_MAX)
-
-    for name, idx in (("random voxels", random_idx), ("contiguous box", box_idx)):
-        med, best = timed(kernel(idx), args.repeats)
-        print(
-            f"vision kernel, {BATCH:,}-voxel batch, {name}: {BATCH / med / 1e6:.1f} M voxel updates/s median "
-            f"({med * 1e3:.2f} ms), {BATCH / best / 1e6:.1f} M/s best"
-        )
-
-    label_map = {0: "floor", 1: "RemoteControl", 2: "sofa"}
-    session = new_session("bench", scene, "remote control", label_map=label_map, grid=grid)
-    labels = rng.integers(0, 3, BATCH)
-
-    def observation_path() -> None:
-        session.belief.apply_increments(session.observation_batch(labels, flat_idx=random_idx))
-
-    med, best = timed(observation_path, args.repeats)
-    print(
-        f"observation path (label ids -> increments -> apply), {BATCH:,} random voxels: "
-        f"{BATCH / med / 1e6:.1f} M voxel updates/s median ({med * 1e3:.2f} ms), "
-        f"{BATCH / best / 1e6:.1f} M/s best"
+    box_s = timed_samples(
+        lambda: fusion.apply_increments(layer, box_idx, bare_increments[0], lo, hi), args.repeats
     )
+    say(f"vision kernel alone, one contiguous {BATCH:,}-voxel box: {rates(box_s, BATCH)}")
+
+    octomap = run_octomap(args.octomap_harness, grid, batches, say)
+    figures.update(octomap_updates_per_s=None, octomap_lazy_updates_per_s=None, vlmap_over_octomap_rate=None)
+    figures["vlmap_bytes_per_voxel"] = session.belief.nbytes / n
+    if octomap is not None:
+        eager, lazy = spread(octomap["seconds"]), spread(octomap["lazy_seconds"])
+        say(
+            f"OctoMap OcTree::updateNode(key, hit) on the same stream: {rates(octomap['seconds'], BATCH)}; "
+            f"with lazy_eval and updateInnerOccupancy per batch: {rates(octomap['lazy_seconds'], BATCH)}"
+        )
+        ratio, lazy_ratio = (
+            eager["median"] / spread(path_s)["median"],
+            lazy["median"] / spread(path_s)["median"],
+        )
+        say(f"VL-Map observation path / OctoMap rate: {ratio:.0f}x ({lazy_ratio:.0f}x against lazy_eval)")
+        leaves, used = int(octomap["leaves"]), int(octomap["memory_bytes"])
+        say(
+            f"state per voxel: VL-Map {session.belief.nbytes / n:.1f} bytes (two float32 layers, every voxel "
+            f"of the grid); OctoMap {used / leaves:.1f} bytes per known leaf ({leaves:,} leaves after the "
+            f"stream, memoryUsage {used:,} bytes, node {octomap['node_bytes']} bytes), {used / n:.1f} per "
+            "grid voxel"
+        )
+        figures.update(
+            octomap_updates_per_s=BATCH / eager["median"],
+            octomap_lazy_updates_per_s=BATCH / lazy["median"],
+            vlmap_over_octomap_rate=ratio,
+            vlmap_over_octomap_lazy_rate=lazy_ratio,
+            octomap_bytes_per_known_voxel=octomap["memory_bytes"] / leaves,
+            octomap_bytes_per_grid_voxel=octomap["memory_bytes"] / n,
+            octomap_leaves=leaves,
+        )
 
     mixture = five_component_mixture(scene, rng)
     belief = BeliefState(grid)
-    med, best = timed(lambda: belief.apply_utterance(mixture), max(3, args.repeats // 4))
-    print(f"language update, 5-component mixture: {med * 1e3:.1f} ms median, {best * 1e3:.1f} ms best")
+    lang_s = spread(timed_samples(lambda: belief.apply_utterance(mixture), args.repeats))
+    say(
+        f"language update, 5-component mixture on {n:,} voxels: {lang_s['median'] * 1e3:.2f} ms median "
+        f"(best {lang_s['best'] * 1e3:.2f}, p90 {lang_s['p90'] * 1e3:.2f})"
+    )
+    figures.update(
+        language_update_ms_1m_voxels=lang_s["median"] * 1e3,
+        language_update_best_ms=lang_s["best"] * 1e3,
+        language_update_p90_ms=lang_s["p90"] * 1e3,
+    )
 
     belief.vis[:] = session.belief.vis
     med, best = timed(lambda: summarize(grid, belief.lang, belief.vis, scene), args.repeats)
     med_bare, best_bare = timed(lambda: summarize(grid, belief.lang, belief.vis), args.repeats)
-    print(
+    say(
         f"summary with {len(scene.objects)} objects: {med * 1e3:.2f} ms median, {best * 1e3:.2f} ms best; "
         f"without places: {med_bare * 1e3:.2f} ms median, {best_bare * 1e3:.2f} ms best"
     )
+    figures.update(summary_ms=med * 1e3, summary_without_places_ms=med_bare * 1e3)
 
     from app.stores import MemorySessionStore, SessionStore
 
@@ -157,15 +287,16 @@ def main() -> None:
     runner.run(anyio.to_thread.run_sync(gc.collect))  # the worker thread lets go of its last job (`fresh`)
     after, _ = tracemalloc.get_traced_memory()
     tracemalloc.stop()
-    print(
+    say(
         f"memory per session: layers {belief.nbytes:,} bytes; a stored session as tracemalloc sees it "
         f"{after - before:,} bytes"
     )
+    figures.update(session_layer_bytes=belief.nbytes, stored_session_bytes=after - before)
     store.close()
 
     def observe(target: SessionStore, session_id: str) -> Callable[[], object]:
         """One acknowledged update of a 100k-voxel labelled batch (not inline: the service's change)."""
-        change = changes.labels(labels, flat_idx=random_idx, max_voxels=BATCH)
+        change = changes.labels(batches[0][1], flat_idx=batches[0][0], max_voxels=BATCH)
         return lambda: runner.run(target.update(session_id, change))
 
     with tempfile.TemporaryDirectory() as data_dir:
@@ -173,10 +304,11 @@ def main() -> None:
         stored = new_session("bench", scene, "remote control", label_map=label_map, grid=grid)
         runner.run(durable.create(stored))
         med, best = timed(observe(durable, stored.id), max(3, args.repeats // 2))
-        print(
+        say(
             f"durable memory store, acknowledged {BATCH:,}-voxel update (log + fsync + apply): "
             f"{med * 1e3:.2f} ms median, {best * 1e3:.2f} ms best (data dir on {data_dir})"
         )
+        figures["durable_update_ms"] = med * 1e3
         durable.close()
 
     if args.redis_url:
@@ -185,17 +317,22 @@ def main() -> None:
         redis_store = RedisSessionStore(args.redis_url, prefix=f"bench-{os.getpid()}")
         runner.run(redis_store.create(stored))
         med, best = timed(observe(redis_store, stored.id), max(3, args.repeats // 2))
-        print(f"redis store, {BATCH:,}-voxel update: {med * 1e3:.2f} ms median, {best * 1e3:.2f} ms best")
+        say(f"redis store, {BATCH:,}-voxel update: {med * 1e3:.2f} ms median, {best * 1e3:.2f} ms best")
+        figures["redis_update_ms"] = med * 1e3
 
         async def utter() -> None:
             log_likelihood = language_log_likelihood(grid, mixture)  # as the service computes it first
             await redis_store.update(stored.id, changes.utterance(mixture, log_likelihood, grid))
 
         med, best = timed(lambda: runner.run(utter()), 3)
-        print(f"redis store, utterance on {n:,} voxels: {med * 1e3:.1f} ms median, {best * 1e3:.1f} ms best")
+        say(f"redis store, utterance on {n:,} voxels: {med * 1e3:.1f} ms median, {best * 1e3:.1f} ms best")
+        figures["redis_utterance_ms"] = med * 1e3
         runner.run(redis_store.delete(stored.id))
         redis_store.close()
     runner.close()
+    figures["load_1min_after"] = os.getloadavg()[0]
+    if args.json:
+        print(json.dumps(figures))
 
 
 if __name__ == "__main__":
