@@ -149,10 +149,14 @@ def test_huge_overlapping_places_are_refused_at_creation(service: tuple[TestClie
 
 
 def test_a_place_index_lists_voxels_only_within_its_budget() -> None:
-    scene = SceneGraph.model_validate(_tables(8, [9, 9, 3]))
+    # Eight cabinets side by side: each one's support place (its box and the margin on top) is its own.
+    cabinets = [
+        {"id": f"c{i}", "label": "cabinet", "center": [10 * i, 0, 2], "size": [9, 9, 3]} for i in range(8)
+    ]
+    scene = SceneGraph.model_validate({"objects": cabinets})
     grid = VoxelGrid.around(scene, voxel_size=0.1)
     index = cached_place_index(grid, scene)
-    assert len(index.object_voxels) <= _INDEXED_VOXELS
+    assert len(index.support_voxels) <= _INDEXED_VOXELS
     assert len(index.summed) > 0  # the rest are summed by sub-box
     rng = np.random.default_rng(0)
     lang = rng.normal(size=grid.n_voxels).astype(np.float32)
@@ -160,9 +164,9 @@ def test_a_place_index_lists_voxels_only_within_its_budget() -> None:
     summary = summarize(grid, lang, vis, scene)
     p = np.exp(lang.astype(np.float64) - lang.max())
     p /= p.sum()
-    table = index.objects[int(index.summed[0])]
-    expected = p.reshape(grid.shape)[table.slices].sum()
-    got = next(m.mass for m in summary.objects if m.id == table.id)
+    cabinet = index.supports[int(index.summed[0])]
+    expected = p.reshape(grid.shape)[cabinet.slices].sum()
+    got = next(m.mass for m in summary.objects if m.id == cabinet.id)
     assert got == pytest.approx(expected, rel=1e-4)
 
 

@@ -357,9 +357,27 @@ class PosteriorSummaryOut(BaseModel):
     entropy_nats: float
     information_gain_nats: float = Field(description="KL(posterior || uniform) = log N - entropy.")
     objects: list[PlaceOut] = Field(
-        description='Mass per scene-graph object, largest first ("0.62 on table 7").'
+        description=(
+            'Mass per scene-graph object, largest first ("0.62 on table 7"): the mass on its support '
+            "place, where a target resting on it or kept in it would be (a table's top; a nightstand's or "
+            "drawer's inside and top), each voxel counted for the smallest support place holding it. "
+            "Structure (floors, walls, ceilings) is listed apart, in `structure`. (Earlier releases counted "
+            "each object's whole box plus 0.3 m on top, floors and walls among them, so that the floor led.)"
+        )
     )
-    regions: list[PlaceOut]
+    regions: list[PlaceOut] = Field(description="Mass per region (its box), largest first.")
+    structure: list[PlaceOut] = Field(
+        description=(
+            "Mass on the room's structure (floors, walls, ceilings: each one's box plus 0.3 m on top), "
+            "outside every object's support place, largest first."
+        )
+    )
+    mass_elsewhere: float = Field(
+        description=(
+            "Mass in no object's support place nor on structure; with every object's and structure's mass "
+            "it sums to one."
+        )
+    )
 
 
 class BeliefOut(BaseModel):

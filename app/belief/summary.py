@@ -9,21 +9,41 @@ With pi = softmax(lang + vis) over the N voxel centres c_i (fusion equation (2))
     information gain IG = log N - H = KL(pi || uniform)                   (nats; 0 for the uniform prior)
     place mass       m(P) = sum_{i: c_i in P} pi_i
 
-An object's place is its (yawed) box grown by `on_margin` above its top surface, so that a target resting
-on it ("on the table") or inside it ("in the fridge") counts towards it; a region's place is its box. An
-object smaller than a voxel, whose box holds no voxel centre, gets the voxel containing its centre.
-Places overlap (a cup's place lies inside the table's), so masses need not sum to one.
+Mass per object: where a person would search. Each scene-graph object's *support place* is where a target
+resting on it or kept in it would be, by the label classes of `app.grounding.box_relations` (its yawed
+footprint, between two heights; `on_margin` is `ON_MARGIN_M` by default):
+
+* a container (`is_container`: cabinet, drawer, nightstand, fridge, box, sink, ...): its whole box, plus
+  `on_margin` above its top unless it is a part of furniture (nothing rests on a drawer);
+* a seat or shelf (`internal_support_reach` > 0: bed, couch, chair, shelf, ...): its box from
+  `INTERNAL_SUPPORT_MIN_HEIGHT` above its base, plus `on_margin` above its top;
+* any other object: its top, from `ON_SINK_TOLERANCE` below the top surface (but not below
+  `ON_MIN_BOTTOM_FRACTION` of its height) to `on_margin` above it, the heights at which the "on" relation
+  puts a target's bottom (the space under a table is not the table's);
+* parts that hold nothing (knobs, handles) and openings (doors, windows, curtains): no support place;
+* structure, the room's shell (`is_room_structure`: floors, ceilings, walls and wall-like partitions): its
+  box plus `on_margin` above its top, reported apart (`PosteriorSummary.structure`), never among the objects.
+
+Each voxel counts towards one place only, the smallest support place (in voxels; ties: the first object of
+the scene graph) that contains its centre, structure only where no object's does: the keys on a nightstand
+count for the nightstand, not for the floor whose box and margin also cover its top, nor for the lamp beside
+them; a voxel inside a drawer of a dresser counts for the drawer; the floor holds what lies on it and on no
+object. So the objects' and structure's masses with `mass_elsewhere` (the mass in no such place) sum to one.
+An object smaller than a voxel, whose support place holds no voxel centre, gets the voxel containing its
+centre. A region's place is its box; regions overlap objects and each other, so their masses need not sum to
+one.
 
 Speed: two passes over the grid in cache-sized chunks. The first finds block maxima, and the top-k
 search then looks only inside the blocks whose maximum can make the top k. The second writes
 exp(s - max s) in float32 and accumulates the entropy term and, per (x, y) column, the mass and the
 first two z moments (one small matrix product per chunk), from which the mean and covariance follow.
-Place index ranges are computed once per (grid, scene graph) and cached. Grid sums finish in float64.
+Place indices are computed once per (grid, scene graph) and cached. Grid sums finish in float64.
 
-Places and memory: an object's place is kept as index ranges (and, for a yawed box, a mask over its
-footprint), and its flat voxel indices are listed only while all the places' lists together stay under
-`_INDEXED_VOXELS`, so that one gather and one segmented sum give those objects' masses; larger places are
-summed over their sub-box. A scene graph of a few huge boxes then costs the summary time in proportion to
+Places and memory: building an index paints every support place into one voxel array (largest first, so
+that the smallest containing place owns a voxel), then lists each place's owned flat voxel indices while
+all the lists together stay under `_INDEXED_VOXELS`, so that one gather and one segmented sum give those
+places' masses; larger places are summed over their sub-box (with a mask of the voxels they own, where
+another place owns some). A scene graph of a few huge boxes then costs the summary time in proportion to
 their volume (which the service caps per session: `place_voxels`, `Settings.max_place_voxels`), never the
 memory of its indices; the cache of place indices is bounded in bytes as well as in entries.
 """
@@ -41,7 +61,20 @@ from typing import Any, Literal
 import numpy as np
 
 from app.belief.grid import VoxelGrid
-from app.scene_graph.model import SceneGraph
+from app.grounding.box_relations import (
+    INTERNAL_SUPPORT_MIN_HEIGHT,
+    ON_MIN_BOTTOM_FRACTION,
+    ON_SINK_TOLERANCE,
+    OPENINGS,
+    PARTS,
+    WALL_LIKE,
+    internal_support_reach,
+    is_ceiling,
+    is_container,
+    is_floor,
+)
+from app.scene_graph.model import SceneGraph, SceneObject
+from app.vocabulary import in_classes
 
 #: Height above an object's top surface that still counts as "on" it (metres): most things people leave
 #: on furniture (bags, cups, laptops, books) are under 30 cm tall.
@@ -88,7 +121,12 @@ class PlaceMass:
 
 @dataclass(frozen=True)
 class PosteriorSummary:
-    """The posterior's MAP voxel, top voxels, moments, entropy and mass per place (sorted, largest first)."""
+    """The posterior's MAP voxel, top voxels, moments, entropy and mass per place (sorted, largest first).
+
+    `objects`: the mass on each object's support place, `structure`: on the room's shell outside them (floors,
+    walls, ceilings), `mass_elsewhere`: in neither (the three sum to one over all places; the lists hold the
+    largest `max_places`); `regions`: in each region's box.
+    """
 
     n_voxels: int
     map_voxel: VoxelMass
@@ -99,6 +137,8 @@ class PosteriorSummary:
     information_gain_nats: float
     objects: tuple[PlaceMass, ...] = ()
     regions: tuple[PlaceMass, ...] = ()
+    structure: tuple[PlaceMass, ...] = ()
+    mass_elsewhere: float = 0.0
     version: int | None = None  # the belief version summarised, when a store knows it
 
     def describe(self, n: int = 3) -> str:
@@ -107,7 +147,8 @@ class PosteriorSummary:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], version: int | None = None) -> PosteriorSummary:
-        """The inverse of `to_dict` (which leaves the version out)."""
+        """The inverse of `to_dict` (which leaves the version out). A summary that an older replica shared
+        (without `structure` and `mass_elsewhere`) reads with none and 0."""
 
         def voxel(v: dict[str, Any]) -> VoxelMass:
             x, y, z = v["center"]
@@ -127,6 +168,8 @@ class PosteriorSummary:
             information_gain_nats=float(data["information_gain_nats"]),
             objects=tuple(place(m) for m in data["objects"]),
             regions=tuple(place(m) for m in data["regions"]),
+            structure=tuple(place(m) for m in data.get("structure", ())),
+            mass_elsewhere=float(data.get("mass_elsewhere", 0.0)),
             version=version,
         )
 
@@ -147,65 +190,104 @@ class PosteriorSummary:
             "information_gain_nats": self.information_gain_nats,
             "objects": [place(m) for m in self.objects],
             "regions": [place(m) for m in self.regions],
+            "structure": [place(m) for m in self.structure],
+            "mass_elsewhere": self.mass_elsewhere,
         }
+
+
+def is_room_structure(label: str) -> bool:
+    """Floors, ceilings, walls and wall-like partitions (`app.grounding.box_relations`' classes): the room's
+    shell, whose mass the summary reports apart from the objects'."""
+    return is_floor(label) or is_ceiling(label) or in_classes(label, WALL_LIKE)
+
+
+def support_heights(obj: SceneObject, on_margin: float = ON_MARGIN_M) -> tuple[float, float] | None:
+    """(bottom, top) heights (m) of an object's support place (see the module docstring), None for an object
+    nothing rests on or in."""
+    half_height = 0.5 * float(obj.size[2])
+    bottom, top = float(obj.center[2]) - half_height, float(obj.center[2]) + half_height
+    label = obj.label
+    if is_room_structure(label):
+        return bottom, top + on_margin
+    holds_on_top = not (in_classes(label, PARTS) or in_classes(label, OPENINGS))
+    on_top = max(top - ON_SINK_TOLERANCE, bottom + ON_MIN_BOTTOM_FRACTION * (top - bottom))
+    if is_container(label):
+        low = bottom
+    elif internal_support_reach(label) > 0:
+        low = min(bottom + INTERNAL_SUPPORT_MIN_HEIGHT, on_top)
+    elif holds_on_top:
+        low = on_top
+    else:
+        return None
+    return low, top + on_margin if holds_on_top else top
 
 
 @dataclass(frozen=True)
 class _Place:
-    """A place as voxel index ranges, with a mask over that sub-box when the place is a yawed box."""
+    """A place as voxel index ranges, with a mask over that sub-box when the place is a yawed box or shares
+    voxels with places that own them."""
 
     kind: Literal["object", "region"]
     id: str
     label: str
     slices: tuple[slice, slice, slice]
-    mask: np.ndarray | None = None  # (bx, by, bz) bool, True where the voxel centre lies in the place
+    # (bx, by, bz) bool, True where the voxel centre lies in the place (and, for a support place, the voxel is
+    # its own); a yawed box's footprint repeated along z is a broadcast view (z stride 0)
+    mask: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
 class PlaceIndex:
-    """Every object's and region's voxels on one grid (build once, reuse for every summary).
+    """Every object's places and every region's on one grid (build once, reuse for every summary).
 
-    `object_voxels[object_bounds[i]:object_bounds[i + 1]]` are the flat voxel indices of the i-th object of
-    `indexed`: one gather and one segmented sum give those objects' masses (a sum per object cost ~15 us
-    each in Python). The other objects (`summed`), whose places were too large to list, are summed over their
-    sub-boxes.
+    `objects`: each object's box grown by `on_margin` on top, in scene-graph order (what the belief's
+    look-alike filter reads, with no margin). `supports`: each object's support place in the same order, its
+    voxels the ones it owns; `structure[i]` says whether the i-th object is room structure.
+    `support_voxels[support_bounds[j]:support_bounds[j + 1]]` are the flat voxel indices owned by the j-th
+    support of `indexed`: one gather and one segmented sum give those masses (a sum per place cost ~15 us
+    each in Python). The other supports (`summed`), too large to list, are summed over their sub-boxes.
     """
 
     objects: tuple[_Place, ...] = field(default=())
     regions: tuple[_Place, ...] = field(default=())
-    object_voxels: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
-    object_bounds: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
-    indexed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # positions in objects
+    supports: tuple[_Place, ...] = field(default=())
+    structure: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    support_voxels: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int32))
+    support_bounds: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    indexed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # positions in supports
     summed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     @property
     def nbytes(self) -> int:
-        return int(self.object_voxels.nbytes)
+        masks = [place.mask for place in self.supports if _owns_mask(place.mask)]
+        return int(self.support_voxels.nbytes) + sum(int(mask.nbytes) for mask in masks if mask is not None)
 
 
-def _flat_voxels(grid: VoxelGrid, place: _Place) -> np.ndarray:
-    """A place's flat voxel indices (int32 on grids below 2^31 voxels)."""
-    axes = [np.arange(s.start, max(s.start, s.stop)) for s in place.slices]
-    flat = np.ravel_multi_index(np.meshgrid(*axes, indexing="ij"), grid.shape)
-    kind = np.int32 if grid.n_voxels < 2**31 else np.int64
-    return (flat[place.mask] if place.mask is not None else flat.ravel()).astype(kind)
+def _owns_mask(mask: np.ndarray | None) -> bool:
+    """Whether a place's mask is an array of its own (not a footprint broadcast along z)."""
+    return mask is not None and mask.strides[2] != 0
 
 
 def _object_aabb(obj: Any, on_margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
     """(centre, half sizes in the object's frame, half sizes of the map-frame bounding box, cos, sin) of an
     object's place."""
     center, half = object_place_box(np.asarray(obj.center), np.asarray(obj.size), on_margin)
-    cos, sin = math.cos(obj.yaw), math.sin(obj.yaw)
+    return (center, half, *_yawed_aabb(half, obj.yaw))
+
+
+def _yawed_aabb(half: np.ndarray, yaw: float) -> tuple[np.ndarray, float, float]:
+    """Half sizes of the map-frame bounding box of a box with these half sizes turned by `yaw`, cos, sin."""
+    cos, sin = math.cos(yaw), math.sin(yaw)
     aabb_half = np.array(
         [abs(cos) * half[0] + abs(sin) * half[1], abs(sin) * half[0] + abs(cos) * half[1], half[2]]
     )
-    return center, half, aabb_half, cos, sin
+    return aabb_half, cos, sin
 
 
 def place_voxels(grid: VoxelGrid, scene_graph: SceneGraph, on_margin: float = ON_MARGIN_M) -> int:
-    """The voxels of every object's place (its map-frame bounding box: an upper bound for a yawed one) and of
-    every region, summed: what a summary reads of the grid beyond one pass, at most. Cheap: no voxel is
-    listed."""
+    """The voxels of every object's place (its map-frame bounding box: an upper bound for a yawed one; each
+    support place lies inside it) and of every region, summed: what building a place index reads of the grid
+    beyond a few passes, and a summary at most. Cheap: no voxel is listed."""
     total = 0
     for obj in scene_graph.objects:
         center, _, aabb_half, _, _ = _object_aabb(obj, on_margin)
@@ -225,46 +307,104 @@ def object_place_box(center: np.ndarray, size: np.ndarray, on_margin: float) -> 
     return center, half + np.array([0.0, 0.0, 0.5 * on_margin])
 
 
+def _box_place(
+    grid: VoxelGrid, obj: SceneObject, center: np.ndarray, half: np.ndarray, *, fallback: bool
+) -> _Place:
+    """The voxels whose centres lie in a box of the object's yaw (centre, half sizes in its frame); with
+    `fallback`, the voxel containing the object's centre when there are none."""
+    aabb_half, cos, sin = _yawed_aabb(half, obj.yaw)
+    slices = grid.box_slices(center - aabb_half, center + aabb_half)
+    mask = None
+    if abs(math.sin(2.0 * obj.yaw)) > 1e-9:  # not a multiple of 90 degrees: the box is not its own AABB
+        xs, ys = (grid.axis_centers(a)[s] - center[a] for a, s in ((0, slices[0]), (1, slices[1])))
+        local_x = cos * xs[:, None] + sin * ys[None, :]  # (bx, by): rotate map offsets into the object frame
+        local_y = -sin * xs[:, None] + cos * ys[None, :]
+        inside_xy = (np.abs(local_x) <= half[0]) & (np.abs(local_y) <= half[1])
+        nz = slices[2].stop - slices[2].start
+        mask = np.broadcast_to(inside_xy[:, :, None], (*inside_xy.shape, nz))
+    if fallback and _place_size(slices, mask) == 0:
+        flat, inside = grid.locate(np.asarray(obj.center)[None, :])
+        if inside[0]:
+            i, j, k = grid.flat_to_ijk(flat)[0]
+            slices, mask = (slice(i, i + 1), slice(j, j + 1), slice(k, k + 1)), None
+    return _Place("object", obj.id, obj.label, slices, mask)
+
+
+_NOWHERE = (slice(0, 0), slice(0, 0), slice(0, 0))
+
+
+def _support_place(grid: VoxelGrid, obj: SceneObject, on_margin: float) -> _Place:
+    heights = support_heights(obj, on_margin)
+    if heights is None:
+        return _Place("object", obj.id, obj.label, _NOWHERE)
+    low, high = heights
+    center = np.array([obj.center[0], obj.center[1], 0.5 * (low + high)], dtype=np.float64)
+    half = np.array([0.5 * obj.size[0], 0.5 * obj.size[1], 0.5 * (high - low)], dtype=np.float64)
+    return _box_place(grid, obj, center, half, fallback=True)
+
+
 def build_place_index(grid: VoxelGrid, scene_graph: SceneGraph, on_margin: float = ON_MARGIN_M) -> PlaceIndex:
-    """Voxel sets of every object's place (box + `on_margin` on top, yaw respected) and every region's box."""
+    """Each object's box + `on_margin` and support place (yaw respected), each support's own voxels (the
+    smallest containing place's, structure last), and each region's box."""
     objects = []
     for obj in scene_graph.objects:
-        center, half, aabb_half, cos, sin = _object_aabb(obj, on_margin)
-        slices = grid.box_slices(center - aabb_half, center + aabb_half)
-        mask = None
-        if abs(math.sin(2.0 * obj.yaw)) > 1e-9:  # not a multiple of 90 degrees: the box is not its own AABB
-            xs, ys = (grid.axis_centers(a)[s] - center[a] for a, s in ((0, slices[0]), (1, slices[1])))
-            local_x = (
-                cos * xs[:, None] + sin * ys[None, :]
-            )  # (bx, by): rotate map offsets into the object frame
-            local_y = -sin * xs[:, None] + cos * ys[None, :]
-            inside_xy = (np.abs(local_x) <= half[0]) & (np.abs(local_y) <= half[1])
-            nz = slices[2].stop - slices[2].start
-            mask = np.broadcast_to(inside_xy[:, :, None], (*inside_xy.shape, nz))
-        if _place_size(slices, mask) == 0:
-            flat, inside = grid.locate(np.asarray(obj.center)[None, :])
-            if inside[0]:
-                i, j, k = grid.flat_to_ijk(flat)[0]
-                slices, mask = (slice(i, i + 1), slice(j, j + 1), slice(k, k + 1)), None
-        objects.append(_Place("object", obj.id, obj.label, slices, mask))
+        center, half = object_place_box(np.asarray(obj.center), np.asarray(obj.size), on_margin)
+        objects.append(_box_place(grid, obj, center, half, fallback=True))
     regions = []
     for reg in scene_graph.regions:
         half = 0.5 * np.asarray(reg.size)
         slices = grid.box_slices(np.asarray(reg.center) - half, np.asarray(reg.center) + half)
         regions.append(_Place("region", reg.id, reg.name, slices))
-    indexed, summed, voxels, listed = [], [], [], 0
-    for position, place in enumerate(objects):
-        size = _place_size(place.slices, place.mask)
-        if listed + size <= _INDEXED_VOXELS:
-            indexed.append(position)
-            voxels.append(_flat_voxels(grid, place))
-            listed += size
+    supports = [_support_place(grid, obj, on_margin) for obj in scene_graph.objects]
+    structure = np.array([is_room_structure(obj.label) for obj in scene_graph.objects], dtype=bool)
+    sizes = [_place_size(place.slices, place.mask) for place in supports]
+    # Paint the places into one array, the last painted owning a voxel: structure first, then the objects,
+    # each group largest first (of equal sizes, the first object last).
+    order = sorted(range(len(supports)), key=lambda i: (not structure[i], -sizes[i], -i))
+    code_type = np.int16 if len(supports) < 2**15 else np.int32
+    owner = np.full(grid.shape, -1, dtype=code_type)
+    for position in order:
+        place = supports[position]
+        if sizes[position] == 0:
+            continue
+        if place.mask is None:
+            owner[place.slices] = position
         else:
-            summed.append(position)
-    bounds = np.cumsum([0, *(len(v) for v in voxels)]).astype(np.int64)
-    flat = np.concatenate(voxels) if voxels else np.zeros(0, dtype=np.int32)
-    listed_at, summed_at = np.asarray(indexed, dtype=np.int64), np.asarray(summed, dtype=np.int64)
-    return PlaceIndex(tuple(objects), tuple(regions), flat, bounds, listed_at, summed_at)
+            np.copyto(owner[place.slices], np.asarray(position, dtype=code_type), where=place.mask)
+    flat_owner = owner.reshape(-1)
+    owned_flat = np.flatnonzero(flat_owner >= 0)
+    codes = flat_owner[owned_flat]
+    counts = np.bincount(codes, minlength=len(supports)) if len(supports) else np.zeros(0, dtype=np.int64)
+    # List the supports' owned voxels, in scene-graph order, while they fit the budget; sum the rest by box.
+    listed = np.zeros(len(supports), dtype=bool)
+    budget = _INDEXED_VOXELS
+    for position, count in enumerate(counts.tolist()):
+        if count <= budget:
+            listed[position] = True
+            budget -= count
+    keep = listed[codes]
+    kept_flat, kept_codes = owned_flat[keep], codes[keep]
+    by_place = np.argsort(kept_codes, kind="stable")
+    index_type = np.int32 if grid.n_voxels < 2**31 else np.int64
+    support_voxels = kept_flat[by_place].astype(index_type)
+    support_bounds = np.cumsum([0, *counts[listed].tolist()]).astype(np.int64)
+    summed = np.flatnonzero(~listed)
+    for position in summed.tolist():
+        place = supports[position]
+        owned = owner[place.slices] == position
+        whole = place.mask if place.mask is not None else True
+        if not np.array_equal(owned, np.broadcast_to(whole, owned.shape)):  # others own some of its voxels
+            supports[position] = _Place(place.kind, place.id, place.label, place.slices, owned)
+    return PlaceIndex(
+        tuple(objects),
+        tuple(regions),
+        tuple(supports),
+        structure,
+        support_voxels,
+        support_bounds,
+        np.flatnonzero(listed),
+        summed,
+    )
 
 
 def _place_size(slices: tuple[slice, slice, slice], mask: np.ndarray | None) -> int:
@@ -397,15 +537,20 @@ def summarize(
     )
     objects: tuple[PlaceMass, ...] = ()
     regions: tuple[PlaceMass, ...] = ()
+    structure: tuple[PlaceMass, ...] = ()
+    elsewhere = 1.0
     if scene_graph is not None:
         index = cached_place_index(grid, scene_graph, on_margin, scene_fingerprint)
         p3 = p.reshape(nx, ny, nz)
-        weights = np.zeros(len(index.objects))
-        weights[index.indexed] = _segment_sums(p, index.object_voxels, index.object_bounds)
-        weights[index.summed] = [_place_weight(index.objects[i], p3) for i in index.summed.tolist()]
-        objects = _ranked(index.objects, weights, z_total)
+        weights = np.zeros(len(index.supports))
+        weights[index.indexed] = _segment_sums(p, index.support_voxels, index.support_bounds)
+        weights[index.summed] = [_place_weight(index.supports[i], p3) for i in index.summed.tolist()]
+        shell = index.structure.tolist()
+        objects = _ranked(index.supports, weights, z_total, [not s for s in shell])
+        structure = _ranked(index.supports, weights, z_total, shell)
         regions = _ranked(index.regions, [_place_weight(place, p3) for place in index.regions], z_total)
-        objects, regions = objects[:max_places], regions[:max_places]
+        objects, structure, regions = objects[:max_places], structure[:max_places], regions[:max_places]
+        elsewhere = max(0.0, 1.0 - float(weights.sum() / z_total))  # each voxel is in one place at most
     return PosteriorSummary(
         n_voxels=n,
         map_voxel=top[0],
@@ -416,6 +561,8 @@ def summarize(
         information_gain_nats=float(math.log(n) - entropy),
         objects=objects,
         regions=regions,
+        structure=structure,
+        mass_elsewhere=elsewhere,
     )
 
 
@@ -423,6 +570,8 @@ def _place_weight(place: _Place, p3: np.ndarray) -> float:
     block = p3[place.slices]
     if place.mask is None:
         return float(block.sum(dtype=np.float64))
+    if _owns_mask(place.mask):
+        return float(block[place.mask].sum(dtype=np.float64))
     # A yawed place's mask is its footprint repeated along z: sum the columns, then mask the footprint.
     return float(block.sum(axis=2, dtype=np.float64)[place.mask[:, :, 0]].sum())
 
@@ -438,11 +587,16 @@ def _segment_sums(p: np.ndarray, flat: np.ndarray, bounds: np.ndarray) -> np.nda
 
 
 def _ranked(
-    places: tuple[_Place, ...], weights: Sequence[float] | np.ndarray, total: float
+    places: tuple[_Place, ...],
+    weights: Sequence[float] | np.ndarray,
+    total: float,
+    chosen: Sequence[bool] | None = None,
 ) -> tuple[PlaceMass, ...]:
+    """The places' masses (of those `chosen`, when given), largest first."""
     masses = [
-        PlaceMass(place.kind, place.id, place.label, float(weight) / total)
-        for place, weight in zip(places, weights, strict=True)
+        PlaceMass(place.kind, place.id, place.label, float(weight / total))
+        for place, weight, keep in zip(places, weights, chosen or [True] * len(places), strict=True)
+        if keep
     ]
     masses.sort(key=lambda m: (-m.mass, m.id))
     return tuple(masses)
