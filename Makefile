@@ -41,7 +41,20 @@ openapi: $(DEV)
 # Benchmarks print figures (the README's Performance section quotes them); they assert nothing.
 bench: $(DEV)
 	HF_HUB_OFFLINE=1 $(PY) -m bench.ground_latency
-	HF_HUB_OFFLINE=1 $(PY) -m bench.fusion_kernel
+	@# OctoMap beside VL-Map in bench.fusion_kernel: Debian's liboctomap-dev (installed when missing, as root
+	@# with apt-get) and bench/octomap_harness.cpp built into var/bench; skipped, saying why, without them.
+	@if [ ! -f /usr/include/octomap/OcTree.h ] && command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ]; then \
+	  echo "bench: installing liboctomap-dev"; \
+	  apt-get install -y -qq liboctomap-dev >/dev/null 2>&1 || \
+	  { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq liboctomap-dev >/dev/null 2>&1; } || \
+	  echo "bench: could not install liboctomap-dev"; \
+	fi
+	@mkdir -p var/bench && rm -f var/bench/octomap_harness
+	@if ! command -v $(CXX) >/dev/null; then echo "bench: OctoMap skipped: no C++ compiler ($(CXX))"; \
+	elif [ ! -f /usr/include/octomap/OcTree.h ]; then echo "bench: OctoMap skipped: liboctomap-dev missing"; \
+	else $(CXX) -O2 -std=c++17 -o var/bench/octomap_harness bench/octomap_harness.cpp -loctomap -loctomath \
+	  || echo "bench: OctoMap skipped: the harness did not build"; fi
+	HF_HUB_OFFLINE=1 $(PY) -m bench.fusion_kernel --octomap-harness var/bench/octomap_harness
 	HF_HUB_OFFLINE=1 $(PY) -m bench.sessions_e2e
 	HF_HUB_OFFLINE=1 $(PY) -m bench.abuse
 	$(MAKE) bench-fleet
