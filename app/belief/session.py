@@ -50,6 +50,8 @@ DEFAULT_FALSE_POSITIVE_RATE = 0.05
 #: Label maps whose largest id is below this are looked up in a dense table (one int8 per id: a lookup per
 #: voxel is the fastest there is); larger ids are found by binary search, so no id allocates memory.
 _DENSE_LABEL_IDS = 1 << 16
+#: Look-alikes of at most this many voxels are found in a batch by comparison rather than a grid mask.
+_FEW_LOOK_ALIKE_VOXELS = 4
 
 
 @dataclass(frozen=True)
@@ -452,12 +454,26 @@ class ObservationModel:
             idx, kept = self.voxel_indices(len(by_id), points, flat_idx, max_voxels, voxels)
             n_outside = int(len(kept) - np.count_nonzero(kept))
             increments = by_id[kept] if n_outside else by_id
-        mask = self._look_alike_mask
-        if mask is not None:
-            explained = mask.take(idx)
+        if self._look_alikes is not None:
+            explained = self._explained(idx)
             if explained.any():
                 idx, increments = _drop(idx, explained), _drop(increments, explained)
         return IncrementBatch(idx, increments, n_outside)
+
+    def _explained(self, idx: np.ndarray) -> np.ndarray:
+        """(M,) bool: which voxels lie in a mapped look-alike. A look-alike of a voxel or a few (an object
+        smaller than a voxel: a remote, a key) is compared directly, a pass per voxel; else one lookup in
+        the mask over the grid."""
+        look_alikes = self._look_alikes
+        assert look_alikes is not None
+        if len(look_alikes) <= _FEW_LOOK_ALIKE_VOXELS:
+            explained: np.ndarray = idx == look_alikes[0]
+            for voxel in look_alikes[1:]:
+                explained |= idx == voxel
+            return explained
+        mask = self._look_alike_mask
+        assert mask is not None
+        return mask.take(idx)
 
     def detection_batch(
         self,
