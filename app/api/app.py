@@ -16,7 +16,9 @@ from app import __version__
 from app.api.bootstrap import Sensors, build_sensors, build_store, freeze_startup_objects
 from app.api.content_types import FormAsJsonMiddleware
 from app.api.deps import reject_unknown_query
+from app.api.docs import install_docs
 from app.api.errors import install_error_handlers
+from app.api.examples import add_request_examples
 from app.api.limits import BodySizeLimitMiddleware
 from app.api.observability import Metrics, RequestContextMiddleware
 from app.api.routes import ground, health, metrics, models, scene_graphs, sessions
@@ -56,7 +58,8 @@ _RAW_BODY_MODELS = (
 
 
 def openapi_with_raw_bodies(app: FastAPI) -> dict[str, Any]:
-    """FastAPI's OpenAPI document plus the schemas of the raw-read bodies, built once."""
+    """FastAPI's OpenAPI document plus the schemas of the raw-read bodies and the request examples
+    (`app.api.examples`), built once."""
     if app.openapi_schema is None:
         spec = FastAPI.openapi(app)
         schemas = spec.setdefault("components", {}).setdefault("schemas", {})
@@ -64,7 +67,7 @@ def openapi_with_raw_bodies(app: FastAPI) -> dict[str, Any]:
             schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
             schemas.update(schema.pop("$defs", {}))
             schemas[model.__name__] = schema
-        app.openapi_schema = spec
+        app.openapi_schema = add_request_examples(spec)
     return app.openapi_schema
 
 
@@ -148,10 +151,13 @@ def create_app(
         dependencies=[Depends(reject_unknown_query)],
         # No redirect from /path/ to /path: it was built from the Host header, before any authentication.
         redirect_slashes=False,
+        docs_url=None,  # FastAPI's /docs and /redoc load their assets from a CDN: `install_docs` serves ours
+        redoc_url=None,
     )
     app.state.services = services
     app.openapi = lambda: openapi_with_raw_bodies(app)  # type: ignore[method-assign]
     install_error_handlers(app)
+    install_docs(app)
     for module in (health, models, metrics, ground, scene_graphs, sessions):
         app.include_router(module.router)
     app.add_middleware(FormAsJsonMiddleware)
