@@ -44,7 +44,7 @@ import numpy as np
 from app.allocator import keep_freed_buffers
 from app.belief import fusion
 from app.belief.grid import VoxelGrid
-from app.belief.session import BeliefState, language_log_likelihood, new_session
+from app.belief.session import BeliefState, Session, _drop, language_log_likelihood, new_session
 from app.belief.summary import summarize
 from app.grounding.mixture import Gaussian, GaussianMixture
 from app.scene_graph.model import SceneGraph
@@ -92,6 +92,100 @@ def rates(samples: list[float], voxels: int) -> str:
         f"{voxels / s['median'] / 1e6:.1f} M voxel updates/s median ({s['median'] * 1e3:.2f} ms; best "
         f"{voxels / s['best'] / 1e6:.1f} M/s, p90 {voxels / s['p90'] / 1e6:.1f} M/s)"
     )
+
+
+def alternate_bare_and_path(
+    session: Session, batches: list[tuple[np.ndarray, np.ndarray]]
+) -> tuple[list[float], list[float]]:
+    """Seconds per batch of the bare update (`fusion.apply_increments` of the batch's increments on a layer
+    of its own) and of the session's whole observation path, alternating batch by batch, so that the ratio
+    is of the same moments of a shared host."""
+    tp, fp = session.sensor_model.tp, session.sensor_model.fp
+    increments = [fusion.vision_increments(labels == TARGET_ID, tp, fp) for _, labels in batches]
+    layer = np.zeros(session.grid.n_voxels, dtype=fusion.LAYER_DTYPE)
+    lo, hi = session.belief.limits.vis_min, session.belief.limits.vis_max
+
+    def bare(b: int) -> None:
+        fusion.apply_increments(layer, batches[b][0], increments[b], lo, hi)
+
+    def path(b: int) -> None:
+        idx, labels = batches[b]
+        session.belief.apply_increments(session.observation_batch(labels, flat_idx=idx))
+
+    bare(0)  # warm-up
+    path(0)
+    bare_s: list[float] = []
+    path_s: list[float] = []
+    for b in range(len(batches)):
+        for fn, samples in ((bare, bare_s), (path, path_s)):
+            start = time.perf_counter()
+            fn(b)
+            samples.append(time.perf_counter() - start)
+    return bare_s, path_s
+
+
+def profile_path(session: Session, batches: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, float]:
+    """Median ms of each step of the observation path on the stream, the steps timed one after the other
+    per batch: where the path's time goes beyond the bare update (np.add.at and the clamp)."""
+    observer, belief = session.observer, session.belief
+    tp, fp = session.sensor_model.tp, session.sensor_model.fp
+    lo, hi = belief.limits.vis_min, belief.limits.vis_max
+    names = (
+        "label ids -> increments (one table lookup, id checks)",
+        "voxel index checks and int64 copy",
+        "look-alike test and drop",
+        "apply: np.add.at",
+        "apply: clamp (whole layer)",
+    )
+    steps: list[list[float]] = [[] for _ in names]
+    for idx, labels in [batches[0], *batches]:  # the first once more, as a warm-up
+        ticks = [time.perf_counter()]
+        increments = observer._id_increments(labels, tp, fp)
+        assert increments is not None
+        ticks.append(time.perf_counter())
+        flat, _ = observer.voxel_indices(len(labels), None, idx, BATCH)
+        ticks.append(time.perf_counter())
+        explained = observer._explained(flat)
+        if explained.any():
+            flat, increments = _drop(flat, explained), _drop(increments, explained)
+        ticks.append(time.perf_counter())
+        np.add.at(belief.vis, flat, increments)
+        ticks.append(time.perf_counter())
+        np.clip(belief.vis, lo, hi, out=belief.vis)
+        ticks.append(time.perf_counter())
+        for samples, start, stop in zip(steps, ticks[:-1], ticks[1:], strict=True):
+            samples.append(stop - start)
+    profile = {name: statistics.median(s[1:]) * 1e3 for name, s in zip(names, steps, strict=True)}
+    profile["total"] = sum(profile.values())
+    return profile
+
+
+def report_octomap(
+    octomap: dict[str, Any], path_s: list[float], vlmap_bytes: int, n: int, say: Callable[[str], None]
+) -> dict[str, Any]:
+    """Say the OctoMap figures beside VL-Map's path; the figures for --json."""
+    eager, lazy, path = spread(octomap["seconds"]), spread(octomap["lazy_seconds"]), spread(path_s)
+    say(
+        f"OctoMap OcTree::updateNode(key, hit) on the same stream: {rates(octomap['seconds'], BATCH)}; "
+        f"with lazy_eval and updateInnerOccupancy per batch: {rates(octomap['lazy_seconds'], BATCH)}"
+    )
+    ratio, lazy_ratio = eager["median"] / path["median"], lazy["median"] / path["median"]
+    say(f"VL-Map observation path / OctoMap rate: {ratio:.0f}x ({lazy_ratio:.0f}x against lazy_eval)")
+    leaves, used = int(octomap["leaves"]), int(octomap["memory_bytes"])
+    say(
+        f"state per voxel: VL-Map {vlmap_bytes / n:.1f} bytes (two float32 layers, every voxel of the grid); "
+        f"OctoMap {used / leaves:.1f} bytes per known leaf ({leaves:,} leaves after the stream, memoryUsage "
+        f"{used:,} bytes, node {octomap['node_bytes']} bytes), {used / n:.1f} per grid voxel"
+    )
+    return {
+        "octomap_updates_per_s": BATCH / eager["median"],
+        "octomap_lazy_updates_per_s": BATCH / lazy["median"],
+        "vlmap_over_octomap_rate": ratio,
+        "vlmap_over_octomap_lazy_rate": lazy_ratio,
+        "octomap_bytes_per_known_voxel": used / leaves,
+        "octomap_bytes_per_grid_voxel": used / n,
+        "octomap_leaves": leaves,
+    }
 
 
 def write_stream(path: Path, grid: VoxelGrid, batches: list[tuple[np.ndarray, np.ndarray]]) -> None:
@@ -152,6 +246,7 @@ def main() -> None:
     parser.add_argument("--redis-url", default=None, help="also time the Redis store on this server")
     parser.add_argument("--octomap-harness", type=Path, default=HARNESS, help="the built OctoMap harness")
     parser.add_argument("--json", action="store_true", help="print one JSON object of the figures")
+    parser.add_argument("--profile", action="store_true", help="time the observation path step by step")
     args = parser.parse_args()
     figures: dict[str, Any] = {}
 
@@ -174,27 +269,10 @@ def main() -> None:
     label_map = {0: "floor", TARGET_ID: "RemoteControl", 2: "sofa"}
     session = new_session("bench", scene, "remote control", label_map=label_map, grid=grid)
     batches = [(rng.integers(0, n, BATCH), rng.integers(0, 3, BATCH)) for _ in range(args.repeats)]
-    tp, fp = session.sensor_model.tp, session.sensor_model.fp
-    bare_increments = [fusion.vision_increments(labels == TARGET_ID, tp, fp) for _, labels in batches]
+    bare_s, path_s = alternate_bare_and_path(session, batches)
     layer = np.zeros(n, dtype=fusion.LAYER_DTYPE)
     lo, hi = fusion.VIS_LOG_MIN, fusion.VIS_LOG_MAX
-
-    def bare(b: int) -> None:
-        fusion.apply_increments(layer, batches[b][0], bare_increments[b], lo, hi)
-
-    def path(b: int) -> None:
-        idx, labels = batches[b]
-        session.belief.apply_increments(session.observation_batch(labels, flat_idx=idx))
-
-    bare(0)  # warm-up
-    path(0)
-    bare_s: list[float] = []
-    path_s: list[float] = []
-    for b in range(len(batches)):  # alternating, batch by batch: the ratio is of the same moments
-        for fn, samples in ((bare, bare_s), (path, path_s)):
-            start = time.perf_counter()
-            fn(b)
-            samples.append(time.perf_counter() - start)
+    bare_increments = fusion.vision_increments(batches[0][1] == TARGET_ID, 0.9, 0.05)  # one batch's
     ratios = sorted(p / q for p, q in zip(path_s, bare_s, strict=True))
     say(f"vision kernel alone (fusion.apply_increments), {BATCH:,} random voxels: {rates(bare_s, BATCH)}")
     say(
@@ -208,11 +286,17 @@ def main() -> None:
         observation_path_p90_updates_per_s=BATCH / spread(path_s)["p90"],
         observation_path_over_bare_time=statistics.median(ratios),
     )
+    if args.profile:
+        profile = profile_path(session, batches)
+        say("observation path, step by step (median ms per 100k-voxel batch):")
+        for name, ms in profile.items():
+            say(f"  {name}: {ms:.3f} ms ({ms / profile['total']:.0%})")
+        figures["observation_path_profile_ms"] = profile
     box = np.zeros(SHAPE, dtype=bool)
     box[10:50, 10:60, 10:60] = True  # 40 * 50 * 50 = 100k voxels, like one camera frustum
     box_idx = np.flatnonzero(box)
     box_s = timed_samples(
-        lambda: fusion.apply_increments(layer, box_idx, bare_increments[0], lo, hi), args.repeats
+        lambda: fusion.apply_increments(layer, box_idx, bare_increments, lo, hi), args.repeats
     )
     say(f"vision kernel alone, one contiguous {BATCH:,}-voxel box: {rates(box_s, BATCH)}")
 
@@ -220,32 +304,7 @@ def main() -> None:
     figures.update(octomap_updates_per_s=None, octomap_lazy_updates_per_s=None, vlmap_over_octomap_rate=None)
     figures["vlmap_bytes_per_voxel"] = session.belief.nbytes / n
     if octomap is not None:
-        eager, lazy = spread(octomap["seconds"]), spread(octomap["lazy_seconds"])
-        say(
-            f"OctoMap OcTree::updateNode(key, hit) on the same stream: {rates(octomap['seconds'], BATCH)}; "
-            f"with lazy_eval and updateInnerOccupancy per batch: {rates(octomap['lazy_seconds'], BATCH)}"
-        )
-        ratio, lazy_ratio = (
-            eager["median"] / spread(path_s)["median"],
-            lazy["median"] / spread(path_s)["median"],
-        )
-        say(f"VL-Map observation path / OctoMap rate: {ratio:.0f}x ({lazy_ratio:.0f}x against lazy_eval)")
-        leaves, used = int(octomap["leaves"]), int(octomap["memory_bytes"])
-        say(
-            f"state per voxel: VL-Map {session.belief.nbytes / n:.1f} bytes (two float32 layers, every voxel "
-            f"of the grid); OctoMap {used / leaves:.1f} bytes per known leaf ({leaves:,} leaves after the "
-            f"stream, memoryUsage {used:,} bytes, node {octomap['node_bytes']} bytes), {used / n:.1f} per "
-            "grid voxel"
-        )
-        figures.update(
-            octomap_updates_per_s=BATCH / eager["median"],
-            octomap_lazy_updates_per_s=BATCH / lazy["median"],
-            vlmap_over_octomap_rate=ratio,
-            vlmap_over_octomap_lazy_rate=lazy_ratio,
-            octomap_bytes_per_known_voxel=octomap["memory_bytes"] / leaves,
-            octomap_bytes_per_grid_voxel=octomap["memory_bytes"] / n,
-            octomap_leaves=leaves,
-        )
+        figures.update(report_octomap(octomap, path_s, session.belief.nbytes, n, say))
 
     mixture = five_component_mixture(scene, rng)
     belief = BeliefState(grid)
