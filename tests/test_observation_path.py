@@ -249,3 +249,25 @@ def test_label_ids_of_a_dense_map_take_the_one_lookup_path() -> None:
     for bad in ([0, 2], [0, 5], [-1, 0]):
         assert model._id_increments(np.array(bad), 0.9, 0.05) is None
     assert model._id_increments(np.array([0, 1]), 0.05, 0.9) is None  # invalid rates: the general path raises
+
+
+@pytest.mark.parametrize("dtype", ["<i8", ">i8", ">i4", "<i2", ">u4", "|u1", "|i1"])
+def test_bounds_in_any_byte_order(dtype: str) -> None:
+    """Ids and flat indices are bounds-checked in one pass as unsigned integers of their own byte order."""
+    model = ObservationModel(GRID, "backpack", {0: "floor", 1: "backpack", 2: "table"}, SensorModel())
+    labels, idx = np.array([0, 1, 2, 1], dtype=dtype), np.array([3, 7, 100, 7], dtype=dtype)
+    assert_same(model.observation_batch(labels, flat_idx=idx), reference_batch(model, labels, idx))
+    cases = [([0, 3, 1, 1], [3, 7, 100, 7])]  # an id not in the map
+    if np.iinfo(np.dtype(dtype)).max >= GRID.n_voxels:
+        cases.append(([0, 1, 2, 1], [3, 7, GRID.n_voxels, 7]))  # a voxel past the grid
+    for bad_labels, bad_idx in cases:
+        labels, idx = np.array(bad_labels, dtype=dtype), np.array(bad_idx, dtype=dtype)
+        got = error_of(lambda: model.observation_batch(labels, flat_idx=idx))  # noqa: B023
+        assert got == error_of(lambda: reference_batch(model, labels, idx))  # noqa: B023
+    if np.dtype(dtype).kind == "i":
+        for labels, idx in (
+            (np.array([0, -1], dtype=dtype), np.array([1, 2], dtype=dtype)),
+            (np.array([0, 1], dtype=dtype), np.array([1, -2], dtype=dtype)),
+        ):
+            got = error_of(lambda: model.observation_batch(labels, flat_idx=idx))  # noqa: B023
+            assert got == error_of(lambda: reference_batch(model, labels, idx))  # noqa: B023

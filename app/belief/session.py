@@ -319,8 +319,8 @@ class ObservationModel:
             if len(self._increment_tables) >= 8:
                 self._increment_tables.clear()
             self._increment_tables[(tp, fp)] = table
-        if (labels.dtype.kind == "i" and labels.min() < 0) or labels.max() >= len(table):
-            return None  # an id not in the map (compared as the integers they are: no uint64 wraps)
+        if not _all_below(labels, len(table)):
+            return None  # an id not in the map
         increments = table.take(labels, mode="clip")
         if math.isnan(float(increments.sum())):  # an id inside the table's range, not in the map
             return None
@@ -421,7 +421,7 @@ class ObservationModel:
         if idx.shape != (n,) or (n and idx.dtype.kind not in "iu"):
             msg = f"flat_idx must be ({n},) integers to match the labels, got {idx.shape} {idx.dtype}"
             raise InvalidInput(msg, "flat_idx")
-        if n and (idx.min() < 0 or idx.max() >= self.grid.n_voxels):
+        if n and not _all_below(idx, self.grid.n_voxels):
             msg = f"flat_idx must lie in [0, {self.grid.n_voxels})"
             raise InvalidInput(msg, "flat_idx")
         return idx.astype(np.int64), np.ones(n, dtype=bool)
@@ -489,6 +489,16 @@ class ObservationModel:
         p = np.asarray(p_target, dtype=np.float64).reshape(-1)
         idx, kept = self.voxel_indices(len(p), points, flat_idx, max_voxels, voxels)
         return IncrementBatch(idx, fusion.detector_increments(p[kept], prior), int(len(kept) - kept.sum()))
+
+
+def _all_below(values: np.ndarray, bound: int) -> bool:
+    """0 <= v < bound for every integer v, in one pass where the bound is at most the dtype's largest value
+    (read as unsigned of the same width and byte order, a negative integer is then above the bound)."""
+    if values.dtype.kind == "u":
+        return bool(values.max() < bound)
+    if bound <= np.iinfo(values.dtype).max + 1:
+        return bool(values.view(values.dtype.str.replace("i", "u")).max() < bound)
+    return bool(values.min() >= 0)  # every value is below the bound
 
 
 def _drop(values: np.ndarray, where: np.ndarray) -> np.ndarray:
