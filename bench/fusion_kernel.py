@@ -17,7 +17,9 @@ Prints what it measures (median, and the spread as best / p90 of the samples):
   as in the service); the Redis utterance includes its term's computation on the grid, as the service's
   utterance does before its update.
 
-`--json` prints one JSON object of the figures on stdout instead (the text goes to stderr).
+The path and the language update are also timed in CPU time (this thread's): on a shared host the wall time
+includes whatever else the host ran meanwhile. `--json` prints one JSON object of the figures on stdout
+instead (the text goes to stderr); `--profile` adds the observation path step by step.
 """
 
 from __future__ import annotations
@@ -65,14 +67,16 @@ def timed(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
     return statistics.median(samples), min(samples)
 
 
-def timed_samples(fn: Callable[[], object], repeats: int) -> list[float]:
-    """Seconds of each of `repeats` calls after one warm-up call."""
+def timed_samples(
+    fn: Callable[[], object], repeats: int, clock: Callable[[], float] = time.perf_counter
+) -> list[float]:
+    """Seconds of each of `repeats` calls after one warm-up call, by `clock` (wall time by default)."""
     fn()
     samples = []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start = clock()
         fn()
-        samples.append(time.perf_counter() - start)
+        samples.append(clock() - start)
     return samples
 
 
@@ -96,10 +100,11 @@ def rates(samples: list[float], voxels: int) -> str:
 
 def alternate_bare_and_path(
     session: Session, batches: list[tuple[np.ndarray, np.ndarray]]
-) -> tuple[list[float], list[float]]:
+) -> tuple[list[float], list[float], list[float]]:
     """Seconds per batch of the bare update (`fusion.apply_increments` of the batch's increments on a layer
     of its own) and of the session's whole observation path, alternating batch by batch, so that the ratio
-    is of the same moments of a shared host."""
+    is of the same moments of a shared host; and the path's CPU seconds per batch (this thread's: not the
+    time the host ran something else)."""
     tp, fp = session.sensor_model.tp, session.sensor_model.fp
     increments = [fusion.vision_increments(labels == TARGET_ID, tp, fp) for _, labels in batches]
     layer = np.zeros(session.grid.n_voxels, dtype=fusion.LAYER_DTYPE)
@@ -116,12 +121,16 @@ def alternate_bare_and_path(
     path(0)
     bare_s: list[float] = []
     path_s: list[float] = []
+    cpu_s: list[float] = []
     for b in range(len(batches)):
-        for fn, samples in ((bare, bare_s), (path, path_s)):
-            start = time.perf_counter()
-            fn(b)
-            samples.append(time.perf_counter() - start)
-    return bare_s, path_s
+        start = time.perf_counter()
+        bare(b)
+        bare_s.append(time.perf_counter() - start)
+        start, cpu = time.perf_counter(), time.thread_time()
+        path(b)
+        path_s.append(time.perf_counter() - start)
+        cpu_s.append(time.thread_time() - cpu)
+    return bare_s, path_s, cpu_s
 
 
 def profile_path(session: Session, batches: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, float]:
@@ -269,7 +278,7 @@ def main() -> None:
     label_map = {0: "floor", TARGET_ID: "RemoteControl", 2: "sofa"}
     session = new_session("bench", scene, "remote control", label_map=label_map, grid=grid)
     batches = [(rng.integers(0, n, BATCH), rng.integers(0, 3, BATCH)) for _ in range(args.repeats)]
-    bare_s, path_s = alternate_bare_and_path(session, batches)
+    bare_s, path_s, path_cpu = alternate_bare_and_path(session, batches)
     layer = np.zeros(n, dtype=fusion.LAYER_DTYPE)
     lo, hi = fusion.VIS_LOG_MIN, fusion.VIS_LOG_MAX
     bare_increments = fusion.vision_increments(batches[0][1] == TARGET_ID, 0.9, 0.05)  # one batch's
@@ -277,7 +286,9 @@ def main() -> None:
     say(f"vision kernel alone (fusion.apply_increments), {BATCH:,} random voxels: {rates(bare_s, BATCH)}")
     say(
         f"observation path (label ids -> increments -> look-alike filter -> apply), same batches: "
-        f"{rates(path_s, BATCH)}; path / kernel time {statistics.median(ratios):.2f} median"
+        f"{rates(path_s, BATCH)}; path / kernel time {statistics.median(ratios):.2f} median; CPU time "
+        f"{statistics.median(path_cpu) * 1e3:.2f} ms median ({BATCH / statistics.median(path_cpu) / 1e6:.1f} "
+        "M/s)"
     )
     figures.update(
         bare_update_updates_per_s=BATCH / spread(bare_s)["median"],
@@ -285,6 +296,7 @@ def main() -> None:
         observation_path_best_updates_per_s=BATCH / spread(path_s)["best"],
         observation_path_p90_updates_per_s=BATCH / spread(path_s)["p90"],
         observation_path_over_bare_time=statistics.median(ratios),
+        observation_path_cpu_updates_per_s=BATCH / statistics.median(path_cpu),
     )
     if args.profile:
         profile = profile_path(session, batches)
@@ -309,11 +321,14 @@ def main() -> None:
     mixture = five_component_mixture(scene, rng)
     belief = BeliefState(grid)
     lang_s = spread(timed_samples(lambda: belief.apply_utterance(mixture), args.repeats))
+    lang_cpu = spread(timed_samples(lambda: belief.apply_utterance(mixture), args.repeats, time.thread_time))
     say(
         f"language update, 5-component mixture on {n:,} voxels: {lang_s['median'] * 1e3:.2f} ms median "
-        f"(best {lang_s['best'] * 1e3:.2f}, p90 {lang_s['p90'] * 1e3:.2f})"
+        f"(best {lang_s['best'] * 1e3:.2f}, p90 {lang_s['p90'] * 1e3:.2f}); CPU time "
+        f"{lang_cpu['median'] * 1e3:.2f} ms median (best {lang_cpu['best'] * 1e3:.2f})"
     )
     figures.update(
+        language_update_cpu_ms=lang_cpu["median"] * 1e3,
         language_update_ms_1m_voxels=lang_s["median"] * 1e3,
         language_update_best_ms=lang_s["best"] * 1e3,
         language_update_p90_ms=lang_s["p90"] * 1e3,
