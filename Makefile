@@ -54,7 +54,8 @@ bench: $(DEV)
 	elif [ ! -f /usr/include/octomap/OcTree.h ]; then echo "bench: OctoMap skipped: liboctomap-dev missing"; \
 	else $(CXX) -O2 -std=c++17 -o var/bench/octomap_harness bench/octomap_harness.cpp -loctomap -loctomath \
 	  || echo "bench: OctoMap skipped: the harness did not build"; fi
-	HF_HUB_OFFLINE=1 $(PY) -m bench.fusion_kernel --octomap-harness var/bench/octomap_harness
+	HF_HUB_OFFLINE=1 $(PY) -m bench.fusion_kernel --octomap-harness var/bench/octomap_harness --profile
+	$(if $(BASELINE),HF_HUB_OFFLINE=1 $(PY) -m bench.fusion_ab --baseline $(BASELINE))
 	HF_HUB_OFFLINE=1 $(PY) -m bench.sessions_e2e
 	HF_HUB_OFFLINE=1 $(PY) -m bench.abuse
 	$(MAKE) bench-fleet
