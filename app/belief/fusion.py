@@ -370,14 +370,20 @@ def _component_support(
     starts = np.concatenate(
         [[0], np.arange((x0 // _SLAB_GROUP + 1) * _SLAB_GROUP, box[0].stop, _SLAB_GROUP) - x0]
     )
-    ranges = [np.stack([starts, np.append(starts[1:], len(dx))])]
-    for a, d in ((1, dy), (2, dz)):
-        centre = cov[0, a] / sxx * dx
-        reach = np.sqrt(r2 * (cov[a, a] - cov[0, a] ** 2 / sxx))
-        lo = np.minimum.reduceat(centre - reach, starts)
-        hi = np.maximum.reduceat(centre + reach, starts)
-        ranges.append(np.stack([np.searchsorted(d, lo, "left"), np.searchsorted(d, hi, "right")]))
-    bounds = np.concatenate(ranges).T.tolist()  # per group: x0, x1, y0, y1, z0, z1
+    centre = (cov[0, 1:] / sxx)[:, None] * dx  # (2, bx): y and z of the sections' centres
+    reach = np.sqrt((np.diag(cov)[1:] - cov[0, 1:] ** 2 / sxx)[:, None] * r2)  # (2, bx): their half-widths
+    lo = np.minimum.reduceat(centre - reach, starts, axis=1)
+    hi = np.maximum.reduceat(centre + reach, starts, axis=1)
+    bounds = np.stack(
+        [
+            starts,
+            np.append(starts[1:], len(dx)),
+            np.searchsorted(dy, lo[0], "left"),
+            np.searchsorted(dy, hi[0], "right"),
+            np.searchsorted(dz, lo[1], "left"),
+            np.searchsorted(dz, hi[1], "right"),
+        ]
+    ).T.tolist()  # per group: x0, x1, y0, y1, z0, z1
     groups = [
         (slice(x0, x1), slice(y0, y1), slice(z0, z1))
         for x0, x1, y0, y1, z0, z1 in bounds
