@@ -285,6 +285,7 @@ class ObservationModel:
         if len(self._ids) and self._ids[-1] < _DENSE_LABEL_IDS:
             self._dense = np.full(int(self._ids[-1]) + 1, -1, dtype=np.int8)
             self._dense[self._ids] = self._id_classes
+        self._dense_has_gaps = self._dense is not None and bool(np.any(self._dense < 0))
 
     @property
     def _look_alike_mask(self) -> np.ndarray | None:
@@ -322,7 +323,7 @@ class ObservationModel:
         if not _all_below(labels, len(table)):
             return None  # an id not in the map
         increments = table.take(labels, mode="clip")
-        if math.isnan(float(increments.sum())):  # an id inside the table's range, not in the map
+        if self._dense_has_gaps and math.isnan(float(increments.sum())):  # an id in no gap of the map
             return None
         return increments
 
