@@ -388,6 +388,23 @@ def host_steal(seconds: float = 3.0) -> dict[str, float]:
     return out
 
 
+def cpu_per_request(
+    cores: dict[str, float], load: dict[str, Any], seconds: float
+) -> dict[str, dict[str, float]]:
+    """Each process's CPU-seconds over the load phase per 1,000 acknowledged observation batches and per 1,000
+    belief polls: work done, which a noisy host's tails do not show. The traffic is mixed, so each figure
+    carries all of the process's work (batches, polls and utterances) of the phase."""
+    batches = max(1, int(load.get("POST /observations", {}).get("ok", 0)))
+    polls = max(1, int(load.get("GET /belief", {}).get("ok", 0)))
+    return {
+        name: {
+            "batches": round(1000 * c * seconds / batches, 3),
+            "polls": round(1000 * c * seconds / polls, 3),
+        }
+        for name, c in cores.items()
+    }
+
+
 def cpu_shares(pids: dict[str, int | None], run: Any, seconds: float) -> dict[str, float]:
     """Run `run()` and return how many cores each process kept busy on average meanwhile, and the shares of
     the machine's CPU time that were idle and stolen by the hypervisor (a virtual machine's neighbours)."""
@@ -582,6 +599,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         busy = ", ".join(f"{name} {cores}" for name, cores in shares.items())
         print(f"Cores kept busy on average ({os.cpu_count()} on this machine): {busy}")
         print(f"Share of the machine's CPU time idle: {idle:.0%}, stolen by the hypervisor: {stolen:.0%}")
+        results["cpu_s_per_1000"] = cpu_per_request(shares, results["load"], args.duration)
+        per = ", ".join(f"{n} {c['batches']} / {c['polls']}" for n, c in results["cpu_s_per_1000"].items())
+        print(
+            f"CPU-seconds per 1,000 batches / per 1,000 polls (each process's whole CPU over the load): {per}"
+        )
         served_after = server_seconds(urls)
         results["server_mean_ms"] = {
             route: round(
