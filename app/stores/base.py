@@ -34,6 +34,7 @@ from app.belief.session import IncrementBatch, ObservationModel, Session, Sessio
 from app.errors import AlreadyApplied, InvalidInput, LimitExceeded
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
+from app.stores.events import EventLog
 
 #: Default idle lifetime of a session (seconds): a day without updates.
 DEFAULT_TTL_S = 24 * 3600.0
@@ -193,10 +194,12 @@ class Change:
     """An update: `compute(view) -> Delta`, a pure function of the session's current state (it may raise to
     refuse the update, which then changes nothing; it may run more than once when a concurrent writer
     came first). `inline`: cheap enough to compute on the event loop when the store holds the state in
-    memory and needs no I/O to apply it."""
+    memory and needs no I/O to apply it. `event`: the `cause` of the version's event
+    (`app.stores.events`) from the update's result; without it the event says {"kind": "update"}."""
 
     compute: Callable[[SessionView], Delta]
     inline: bool = False
+    event: Callable[[UpdateResult], Mapping[str, Any]] | None = None
 
 
 @runtime_checkable
@@ -255,6 +258,17 @@ class SessionStore(Protocol):
 
     async def purge_expired(self) -> int:
         """Drop expired sessions now; returns how many."""
+        ...
+
+    @property
+    def events(self) -> EventLog:
+        """The sessions' events: one per version (written with it, atomically), per deletion and per
+        `announce`."""
+        ...
+
+    async def announce(self, session_id: str, cause: Mapping[str, Any]) -> None:
+        """An event for the session's current version that changes nothing (an utterance not fused), in
+        order with its updates; NotFound if absent."""
         ...
 
     def close(self) -> None: ...

@@ -78,6 +78,7 @@ from app.stores.base import (
     unpack_array,
     unpack_mixture,
 )
+from app.stores.events import MemoryEventLog, describe
 
 T = TypeVar("T")
 
@@ -243,6 +244,7 @@ class MemorySessionStore:
         self.idempotency_window_s = idempotency_window_s
         self.idempotency_keys = idempotency_keys
         self._clock = clock
+        self.events = MemoryEventLog()
         self._entries: dict[str, _Entry] = {}
         # deleted sessions' ids -> (robot id, the keys they remembered, their delete's among them)
         self._tombstones: dict[str, tuple[str, IdempotencyLog]] = {}
@@ -454,9 +456,12 @@ class MemorySessionStore:
         """Run on a worker thread: what waits for a session's lock or appends to the log."""
         return await anyio.to_thread.run_sync(func)
 
-    def _remove(self, entry: _Entry, idempotency: Idempotency | None = None) -> bool:
+    def _remove(
+        self, entry: _Entry, idempotency: Idempotency | None = None, *, announce: bool = False
+    ) -> bool:
         """Log the deletion and forget the session; False if someone else removed it first. With a key, the
-        session's keys and the delete's stay as a tombstone."""
+        session's keys and the delete's stay as a tombstone. `announce`: publish its "deleted" event (an
+        expiry has none, as on Redis, where keys expire by themselves)."""
         with entry.lock:
             if entry.deleted:
                 return False
@@ -475,6 +480,8 @@ class MemorySessionStore:
                 with self._registry_lock:
                     self._tombstones[entry.session.id] = (entry.session.robot_id, entry.keys)
             entry.deleted = True
+            if announce:
+                self._publish(entry.session, {"kind": "deleted"}, now, last=True)
             if self._dir is not None:
                 (self._dir / _SNAPSHOT_DIR / f"{entry.session.id}.snap").unlink(missing_ok=True)
             with self._registry_lock:
@@ -520,6 +527,7 @@ class MemorySessionStore:
                     # Logged under the registry lock: a compaction listing sessions after its log cut sees
                     # every session whose creation precedes the cut.
                     self._entries[stored.id] = _Entry(stored, keys, self._append(record))
+                    self._publish(stored, {"kind": "created"}, now)
                     self._tombstones.pop(stored.id, None)
                     if idempotency is not None and remembered is not None:
                         keys.add(idempotency.key, remembered)
@@ -586,7 +594,7 @@ class MemorySessionStore:
         except NotFound:
             self._check_tombstone(session_id, idempotency)
             raise
-        if not self._remove(entry, idempotency):
+        if not self._remove(entry, idempotency, announce=True):
             self._check_tombstone(session_id, idempotency)
             msg = f"no session {session_id!r}"
             raise NotFound(msg)
@@ -622,6 +630,7 @@ class MemorySessionStore:
         if idempotency is not None and remembered is not None:
             entry.keys.add(idempotency.key, remembered)
         apply_delta(session, delta, lang, now)
+        self._publish(session, describe(change.event, result), now)
         return result
 
     def _update(self, session_id: str, change: Change, idempotency: Idempotency | None) -> UpdateResult:
@@ -643,6 +652,34 @@ class MemorySessionStore:
                 finally:
                     entry.lock.release()
         return await self._off_loop(partial(self._update, session_id, change, idempotency))
+
+    def _publish(self, session: Session, cause: Mapping[str, Any], at: float, *, last: bool = False) -> None:
+        """The session's event for its current version (its lock held: events are numbered in order)."""
+        self.events.publish(
+            session.id,
+            session.robot_id,
+            session.created_at,
+            session.version,
+            at,
+            session.target_label,
+            cause,
+            last=last,
+        )
+
+    def _announce(self, session_id: str, cause: Mapping[str, Any]) -> None:
+        with self._locked(session_id) as entry:
+            self._publish(entry.session, cause, self._clock())
+
+    async def announce(self, session_id: str, cause: Mapping[str, Any]) -> None:
+        entry = self._head(session_id)
+        if entry.lock.acquire(blocking=False):  # free: published here, without a thread switch
+            try:
+                if not entry.deleted:
+                    self._publish(entry.session, cause, self._clock())
+                    return
+            finally:
+                entry.lock.release()
+        await self._off_loop(partial(self._announce, session_id, cause))
 
     def _purge_expired(self) -> int:
         if self.ttl_s is None:

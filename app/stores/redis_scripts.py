@@ -34,17 +34,31 @@ local function remember(i, key, record, now_ms, window_ms, max_keys)
 end
 """
 
-# KEYS: meta, lock, lang, vis, summary, idem, idem_at, then the hashes written.
+# Append an event (`app.stores.events`) to the session's stream (KEYS[i]; trimmed to about ARGV[at + 2]
+# entries) and publish "<its id> <its JSON>" on the events channel (ARGV[at + 3]): its JSON is ARGV[at], the
+# version, ARGV[at + 1]. In the script that commits the version, so that the stream holds every version once,
+# in order, and the channel carries what the stream holds (a PUBLISH touches no key: it works on a cluster,
+# whose nodes all relay it).
+_EVENT = """
+local function event(i, at, version)
+    local data = ARGV[at] .. version .. ARGV[at + 1]
+    local id = redis.call('XADD', KEYS[i], 'MAXLEN', '~', ARGV[at + 2], '*', 'e', data)
+    redis.call('PUBLISH', ARGV[at + 3], id .. ' ' .. data)
+end
+"""
+
+# KEYS: meta, lock, lang, vis, summary, idem, idem_at, events, then the hashes written.
 # ARGV: [1] version read, [2] updated_at read (with the version, the name of the state read: a session
 # deleted and created again under its id restarts its versions), [3] lock token ("" without the lock),
 # [4] new updated_at, [5] expiry ms ("" for none), [6] idempotency key, [7] its record, [8] now ms,
-# [9] window ms, [10] keys kept, [11] number of hashes written, then per hash: its number of fields, then
-# field, value, ...
+# [9] window ms, [10] keys kept, [11] number of hashes written, [12]-[15] the event (`_EVENT`), then per
+# hash: its number of fields, then field, value, ...
 # Returns {version} when written, {-1} without the session, {-2} when another writer came first, and
 # {-3, record} when the key was seen (this very commit, resent, or another request with the key).
 COMMIT_SCRIPT = (
     _HSET_CHUNKS
     + _REMEMBER
+    + _EVENT
     + """
 local seen = redis.call('HGET', KEYS[6], ARGV[6])
 if seen then return {-3, seen} end
@@ -53,8 +67,8 @@ if not state[1] then return {-1} end
 if state[1] ~= ARGV[1] or state[2] ~= ARGV[2] then return {-2} end
 local holder = redis.call('GET', KEYS[2])
 if holder and holder ~= ARGV[3] then return {-2} end
-local at = 12
-for k = 8, 7 + tonumber(ARGV[11]) do
+local at = 16
+for k = 9, 8 + tonumber(ARGV[11]) do
     local n = tonumber(ARGV[at])
     hset_pairs(KEYS[k], at + 1, n)
     at = at + 1 + 2 * n
@@ -62,20 +76,24 @@ end
 local new = tonumber(state[1]) + 1
 redis.call('HSET', KEYS[1], 'version', new, 'updated_at', ARGV[4])
 remember(6, ARGV[6], ARGV[7], tonumber(ARGV[8]), tonumber(ARGV[9]), tonumber(ARGV[10]))
+event(8, 12, string.format('%d', new))
 if ARGV[5] ~= '' then
-    for _, k in ipairs({1, 3, 4, 5, 6, 7}) do redis.call('PEXPIREAT', KEYS[k], ARGV[5]) end
+    for _, k in ipairs({1, 3, 4, 5, 6, 7, 8}) do redis.call('PEXPIREAT', KEYS[k], ARGV[5]) end
 end
 return {new}
 """
 )
 
-# KEYS: meta, lang, vis, summary, idem, idem_at.
+# KEYS: meta, lang, vis, summary, idem, idem_at, events.
 # ARGV: [1] idempotency key ("" for none), [2] its record, [3] now ms, [4] window ms, [5] keys kept,
-# [6] expiry ms ("" for none), then for meta, lang and vis: the number of fields, then field, value, ...
+# [6] expiry ms ("" for none), [7] the version created, [8]-[11] its event (`_EVENT`), then for meta, lang
+# and vis: the number of fields, then field, value, ...
 # Returns {0} when created, {-1} when the session exists, {-3, record} when it exists made under the key.
+# The events stream of a deleted incarnation stays: the new one's events follow its "deleted" event.
 CREATE_SCRIPT = (
     _HSET_CHUNKS
     + _REMEMBER
+    + _EVENT
     + """
 if redis.call('EXISTS', KEYS[1]) == 1 then
     local seen = ARGV[1] ~= '' and redis.call('HGET', KEYS[5], ARGV[1])
@@ -83,7 +101,7 @@ if redis.call('EXISTS', KEYS[1]) == 1 then
     return {-1}
 end
 redis.call('DEL', KEYS[2], KEYS[3], KEYS[4], KEYS[5], KEYS[6])  -- what a deleted incarnation left
-local at = 7
+local at = 12
 for k = 1, 3 do
     local n = tonumber(ARGV[at])
     if n > 0 then hset_pairs(KEYS[k], at + 1, n) end
@@ -92,22 +110,31 @@ end
 if ARGV[1] ~= '' then
     remember(5, ARGV[1], ARGV[2], tonumber(ARGV[3]), tonumber(ARGV[4]), tonumber(ARGV[5]))
 end
+event(7, 8, ARGV[7])
 if ARGV[6] ~= '' then
-    for k = 1, 6 do redis.call('PEXPIREAT', KEYS[k], ARGV[6]) end
+    for k = 1, 7 do redis.call('PEXPIREAT', KEYS[k], ARGV[6]) end
+else
+    redis.call('PERSIST', KEYS[7])
 end
 return {0}
 """
 )
 
-# KEYS: meta, lang, vis, summary, idem, idem_at.
-# ARGV: [1] idempotency key ("" for none), [2] its record, [3] now ms, [4] window ms.
+# KEYS: meta, lang, vis, summary, idem, idem_at, events.
+# ARGV: [1] idempotency key ("" for none), [2] its record, [3] now ms, [4] window ms, [5]-[8] the "deleted"
+# event (`_EVENT`; its version is the session's last), [9] how long the events stream stays (ms).
 # Returns {0} when deleted, {-1} without the session, {-3, record} when the key was seen.
-DELETE_SCRIPT = """
+DELETE_SCRIPT = (
+    _EVENT
+    + """
 if ARGV[1] ~= '' then
     local seen = redis.call('HGET', KEYS[5], ARGV[1])
     if seen then return {-3, seen} end
 end
-if redis.call('EXISTS', KEYS[1]) == 0 then return {-1} end
+local version = redis.call('HGET', KEYS[1], 'version')
+if not version then return {-1} end
+event(7, 5, version)
+redis.call('PEXPIRE', KEYS[7], ARGV[9])
 redis.call('DEL', KEYS[1], KEYS[2], KEYS[3], KEYS[4], KEYS[5], KEYS[6])
 if ARGV[1] ~= '' then  -- the tombstone: this delete's record, for the window
     redis.call('HSET', KEYS[5], ARGV[1], ARGV[2])
@@ -117,6 +144,21 @@ if ARGV[1] ~= '' then  -- the tombstone: this delete's record, for the window
 end
 return {0}
 """
+)
+
+# KEYS: meta, events. ARGV: [1]-[4] the event (`_EVENT`) of the session's current version.
+# Returns 1 when published, 0 without the session.
+ANNOUNCE_SCRIPT = (
+    _EVENT
+    + """
+local version = redis.call('HGET', KEYS[1], 'version')
+if not version then return 0 end
+event(2, 1, version)
+local ttl = redis.call('PTTL', KEYS[1])
+if ttl > 0 then redis.call('PEXPIRE', KEYS[2], ttl) end
+return 1
+"""
+)
 
 # KEYS: a robot's index. ARGV: [1] session id, [2] the score from which an entry counts as live, [3] the
 # reservation's score, [4] the robot's limit. Returns 1 when reserved (or already there), 0 at the limit.

@@ -17,6 +17,8 @@ Keys of session S (the hash tag {S} keeps them in one cluster slot):
     <prefix>:s:{S}:idem   hash: idempotency key -> `IdempotencyRecord` of the commit made under it: a
                           client's Idempotency-Key ("k:<key>"), or the commit's own id ("c:<id>")
     <prefix>:s:{S}:idem_at  sorted set: the same keys scored by when they were written (ms)
+    <prefix>:s:{S}:events  stream: the session's events, one per version, written by the script that
+                          commits it (`app.stores.redis_events`), each also published on <prefix>:events
     <prefix>:sessions, <prefix>:robot:<R>   sorted sets of session ids scored by expiry time (ms), as last
                           recorded (a hint: `list` checks every id against its meta hash)
 
@@ -107,6 +109,8 @@ from app.stores.base import (
     check_session_id,
     session_limit_error,
 )
+from app.stores.events import describe, event_parts
+from app.stores.redis_events import DELETED_STREAM_MS, RedisEventLog
 from app.stores.redis_mirror import (
     Mirror,
     Mirrored,
@@ -117,6 +121,7 @@ from app.stores.redis_mirror import (
     n_blocks,
 )
 from app.stores.redis_scripts import (
+    ANNOUNCE_SCRIPT,
     COMMIT_SCRIPT,
     CREATE_SCRIPT,
     DELETE_SCRIPT,
@@ -364,6 +369,9 @@ class RedisSessionStore:
         # session id -> the index score this process last wrote for it
         self._indexed: OrderedDict[str, float] = OrderedDict()
         self._indexed_lock = threading.Lock()
+        self.events = RedisEventLog(
+            url, f"{prefix}:events", lambda sid: self._key(sid, "events"), self._events_client
+        )
 
     # -- the connection -------------------------------------------------------------------------------------
 
@@ -385,6 +393,7 @@ class RedisSessionStore:
                         self._url, socket_timeout=wait, socket_connect_timeout=wait
                     )
                 sources = {
+                    "announce": ANNOUNCE_SCRIPT,
                     "commit": COMMIT_SCRIPT,
                     "create": CREATE_SCRIPT,
                     "delete": DELETE_SCRIPT,
@@ -427,6 +436,17 @@ class RedisSessionStore:
             client = kind.from_url(self._url, socket_timeout=wait, socket_connect_timeout=wait)
             current = self._async = (loop, client, client.register_script(COMMIT_SCRIPT))
         return current[1], current[2]
+
+    async def _events_client(self) -> Any:
+        return (await self._async_client())[0]
+
+    def _event_args(
+        self, session_id: str, static: Mapping[str, Any], target: str, at: float, cause: Mapping[str, Any]
+    ) -> list[Any]:
+        """The `_EVENT` arguments of the scripts: the event's JSON around its version, the stream's length
+        and the channel."""
+        head, tail = event_parts(session_id, static["robot_id"], static["created_at"], at, target, cause)
+        return [head, tail, max(1, self.events.history), self.events.channel]
 
     async def _on_loop(self, command: str, *args: Any) -> Any:
         """One read with the event loop's client (sent again once if its pooled connection was to a Redis
@@ -613,7 +633,7 @@ class RedisSessionStore:
             delta = change.compute(view)
         writes = self._writes(view, delta)
         result = delta.result(session_id, view.version + 1, view.grid.n_voxels)
-        commit = self._commit_of(session_id, view, token, writes, result, idempotency)
+        commit = self._commit_of(session_id, view, token, writes, result, idempotency, change, delta)
         outcome = self._script("commit")(keys=commit.keys, args=commit.args)
         if not self._committed(session_id, outcome, commit, mirrored):
             return None
@@ -640,7 +660,7 @@ class RedisSessionStore:
             return None
         writes = self._writes(view, delta)
         result = delta.result(session_id, view.version + 1, view.grid.n_voxels)
-        commit = self._commit_of(session_id, view, "", writes, result, idempotency)
+        commit = self._commit_of(session_id, view, "", writes, result, idempotency, change, delta)
         script = (await self._async_client())[1]
         try:
             outcome = await script(keys=commit.keys, args=commit.args)
@@ -717,21 +737,26 @@ class RedisSessionStore:
         writes: PartWrites,
         result: UpdateResult,
         idempotency: Idempotency | None,
+        change: Change | None = None,
+        delta: Delta | None = None,
     ) -> _Commit:
         """The `COMMIT_SCRIPT` call for writes computed from the view's state, with the record of its
-        idempotency key (the client's, else its own id)."""
+        idempotency key (the client's, else its own id) and the version's event (its cause from `change`)."""
         now = self._clock()
         commit_id = uuid.uuid4().hex
         key = f"k:{idempotency.key}" if idempotency is not None else f"c:{commit_id}"
         given = idempotency or Idempotency(key, "")
         record = IdempotencyRecord.of(given, result, now, commit_id, view.robot_id)
         expiry = self._expiry_ms(now)
-        keys = [self._key(session_id, part) for part in ("meta", "lock", "lang", "vis", "summary")]
-        keys += [self._key(session_id, "idem"), self._key(session_id, "idem_at")]
+        parts = ("meta", "lock", "lang", "vis", "summary", "idem", "idem_at", "events")
+        keys = [self._key(session_id, part) for part in parts]
         stamp = view.stamp
         args: list[Any] = [stamp[0], stamp[1], token, repr(now), int(expiry) if math.isfinite(expiry) else ""]
         args += [key, record.pack(), int(now * 1000), self.idempotency_window_ms, self.idempotency_keys]
         args.append(len(writes))
+        named = delta.meta.target_label if delta is not None and delta.meta is not None else None
+        cause = describe(change.event if change is not None else None, result)
+        args += self._event_args(session_id, view.static, named or view.target_label, now, cause)
         for part, fields in writes.items():
             keys.append(self._key(session_id, part))
             args.append(len(fields))
@@ -814,12 +839,16 @@ class RedisSessionStore:
             self.idempotency_window_ms,
             self.idempotency_keys,
             int(expiry) if math.isfinite(expiry) else "",
+            session.version,
         ]
+        created = {"kind": "created"}
+        args += self._event_args(session.id, _static_meta(session), session.target_label, now, created)
         for fields in parts:
             args.append(len(fields))
             for name, value in fields.items():
                 args += [name, value]
-        keys = [self._key(session.id, part) for part in ("meta", "lang", "vis", "summary", "idem", "idem_at")]
+        key_parts = ("meta", "lang", "vis", "summary", "idem", "idem_at", "events")
+        keys = [self._key(session.id, part) for part in key_parts]
         outcome = self._script("create")(keys=keys, args=args)
         if int(outcome[0]) < 0:
             if int(outcome[0]) == -3:
@@ -969,14 +998,18 @@ class RedisSessionStore:
             raise AlreadyApplied(IdempotencyRecord.unpack(seen))
         if static_raw is None:
             raise _not_found(session_id)
-        robot_id = _decode_static(static_raw)["robot_id"]
+        static = _decode_static(static_raw)
+        robot_id = static["robot_id"]
         now = self._clock()
         packed = b""
         if idempotency is not None:
             result = UpdateResult(session_id, 0, 0)
             packed = IdempotencyRecord.of(idempotency, result, now, robot_id=robot_id).pack()
-        keys = [self._key(session_id, part) for part in ("meta", "lang", "vis", "summary", "idem", "idem_at")]
-        args = [key, packed, int(now * 1000), self.idempotency_window_ms]
+        parts = ("meta", "lang", "vis", "summary", "idem", "idem_at", "events")
+        keys = [self._key(session_id, part) for part in parts]
+        args: list[Any] = [key, packed, int(now * 1000), self.idempotency_window_ms]
+        args += self._event_args(session_id, static, static["target_label"], now, {"kind": "deleted"})
+        args.append(DELETED_STREAM_MS)
         outcome = self._script("delete")(keys=keys, args=args)
         if int(outcome[0]) == -3:
             raise AlreadyApplied(IdempotencyRecord.unpack(outcome[1]))
@@ -988,6 +1021,19 @@ class RedisSessionStore:
 
     async def delete(self, session_id: str, *, idempotency: Idempotency | None = None) -> None:
         await _off_loop(functools.partial(self._delete, session_id, idempotency))
+
+    def _announce(self, session_id: str, cause: Mapping[str, Any]) -> None:
+        static_raw = self._client.hget(self._key(session_id, "meta"), "static")
+        if static_raw is None:
+            raise _not_found(session_id)
+        static = _decode_static(static_raw)
+        keys = [self._key(session_id, "meta"), self._key(session_id, "events")]
+        args = self._event_args(session_id, static, static["target_label"], self._clock(), cause)
+        if not self._script("announce")(keys=keys, args=args):
+            raise _not_found(session_id)
+
+    async def announce(self, session_id: str, cause: Mapping[str, Any]) -> None:
+        await _off_loop(functools.partial(self._announce, session_id, cause))
 
     def _purge_expired(self) -> int:
         """Prune the index entries of sessions Redis has dropped (their keys expire by themselves)."""
