@@ -13,14 +13,26 @@ the service gives one, else an exponential backoff), and the service applies it 
         vl.send_utterance(session["id"], "I left my backpack on the table")
         vl.send_observations(session["id"], voxels=ijk, labels=label_ids)
         belief, etag = vl.get_belief(session["id"])
+
+Push streams: `session_events(id)` and `fleet_events(robot_id)` iterate a stream's events (`StreamEvent`:
+"belief" for each version, "sync" when the state should be read again; docs/api.md), reconnecting with
+Last-Event-ID when the connection ends (the server ends each stream after a while), so that no event is
+missed or repeated while the service's history reaches back that far (else a "sync" says so). A session
+stream ends after the session's "deleted" event.
+
+    for event in vl.session_events(session["id"]):
+        if event.event == "sync" or event.data["version"] != shown:
+            belief, etag = vl.get_belief(session["id"], etag)
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import random
 import time
 import uuid
+from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -82,6 +94,89 @@ class BeliefGrid:
     posterior: np.ndarray  # (N,) float32, sums to 1
     lang: np.ndarray | None = None
     vis: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class StreamEvent:
+    """One event of a push stream: `event` ("belief" or "sync"), its `id` (a stream resumes after it) and
+    its `data` (the JSON object: `BeliefEvent` or `StreamSync` in the OpenAPI)."""
+
+    event: str
+    id: str | None
+    data: dict[str, Any]
+
+
+class _SseParser:
+    """Server-Sent Events from lines, as the WHATWG spec reads them (comments and unknown fields ignored)."""
+
+    def __init__(self) -> None:
+        self.retry_ms: int | None = None
+        self._event, self._id, self._data = "message", None, []  # type: tuple[str, str | None, list[str]]
+
+    def feed(self, line: str) -> StreamEvent | None:
+        if not line:
+            event = None
+            if self._data:
+                event = StreamEvent(self._event, self._id, json.loads("\n".join(self._data)))
+            self._event, self._data = "message", []
+            return event
+        name, _, value = line.partition(":")
+        value = value.removeprefix(" ")
+        if name == "data":
+            self._data.append(value)
+        elif name == "event":
+            self._event = value
+        elif name == "id" and "\0" not in value:
+            self._id = value
+        elif name == "retry" and value.isdigit():
+            self.retry_ms = int(value)
+        return None
+
+
+@dataclass
+class _Follow:
+    """A push stream as a client follows it: where, from which event on, and when it is over."""
+
+    path: str
+    params: dict[str, str]
+    last_event_id: str | None
+    reconnect: bool
+    idle_timeout_s: float
+    session: bool  # a session's stream: over after its "deleted" event
+    connected: bool = False
+    failures: int = 0  # attempts that failed in a row
+
+    def request(self) -> Request:
+        headers = {"Accept": "text/event-stream"}
+        if self.last_event_id:
+            headers["Last-Event-ID"] = self.last_event_id
+        return Request("GET", self.path, {"params": self.params, "headers": headers})
+
+    def took(self, event: StreamEvent) -> bool:
+        """Note an event; True when the stream is over with it."""
+        if event.id is not None:
+            self.last_event_id = event.id
+        kind = event.data.get("cause", {}).get("kind") if event.event == "belief" else None
+        return self.session and kind == "deleted"
+
+    def gone(self, response: httpx.Response) -> bool:
+        """Whether an error answer ends the iteration quietly: a followed session that is gone."""
+        return self.connected and self.session and response.status_code == 404
+
+    def opened(self) -> None:
+        self.connected, self.failures = True, 0
+
+    def refused(self, response: httpx.Response, retries: int) -> httpx.Response:
+        """An error answer: raised (`VLMapHTTPError`) unless it is worth another attempt."""
+        if response.status_code not in RETRIED_STATUSES or self.failures >= retries:
+            _checked(response)
+        self.failures += 1
+        return response
+
+    def lost(self, retries: int) -> bool:
+        """A connection that failed: whether to try again (not once `retries` failed in a row)."""
+        self.failures += 1
+        return self.failures <= retries
 
 
 def _array(packed: dict[str, Any]) -> np.ndarray:
@@ -148,6 +243,15 @@ class _Calls:
         )
 
     @staticmethod
+    def session_events(session_id: str, after: str | None, reconnect: bool, idle_s: float) -> _Follow:
+        return _Follow(f"/v1/sessions/{session_id}/events", {}, after, reconnect, idle_s, session=True)
+
+    @staticmethod
+    def fleet_events(robot_id: str | None, after: str | None, reconnect: bool, idle_s: float) -> _Follow:
+        params = {"robot_id": robot_id} if robot_id else {}
+        return _Follow("/v1/events", params, after, reconnect, idle_s, session=False)
+
+    @staticmethod
     def get_belief_grid(session_id: str, layers: bool) -> Request:
         params = {"format": "grid", "layers": str(layers).lower()}
         return Request("GET", f"/v1/sessions/{session_id}/belief", {"params": params})
@@ -198,6 +302,11 @@ def _grid(response: httpx.Response) -> BeliefGrid:
         lang=_array(data["lang"]) if "lang" in data else None,
         vis=_array(data["vis"]) if "vis" in data else None,
     )
+
+
+def _stream_timeout(timeout: httpx.Timeout, follow: _Follow) -> httpx.Timeout:
+    """The client's timeouts, reading a stream for up to its idle time (keep-alives come well within it)."""
+    return httpx.Timeout(timeout.connect, read=follow.idle_timeout_s, write=timeout.write, pool=timeout.pool)
 
 
 def _headers(api_key: str | None) -> dict[str, str]:
@@ -293,6 +402,60 @@ class VLMapClient:
     def get_belief_grid(self, session_id: str, layers: bool = False) -> BeliefGrid:
         return _grid(self._send(_Calls.get_belief_grid(session_id, layers)))
 
+    def session_events(
+        self,
+        session_id: str,
+        last_event_id: str | None = None,
+        *,
+        reconnect: bool = True,
+        idle_timeout_s: float = 60.0,
+    ) -> Iterator[StreamEvent]:
+        """The session's events (after `last_event_id`, if given), until its "deleted" event; reconnecting
+        (`reconnect`) when the stream ends or nothing, not even a keep-alive, came for `idle_timeout_s`."""
+        return self._follow(_Calls.session_events(session_id, last_event_id, reconnect, idle_timeout_s))
+
+    def fleet_events(
+        self,
+        robot_id: str | None = None,
+        last_event_id: str | None = None,
+        *,
+        reconnect: bool = True,
+        idle_timeout_s: float = 60.0,
+    ) -> Iterator[StreamEvent]:
+        """The events of every session the key may read (of `robot_id`'s only, if given), as
+        `session_events` follows one session's."""
+        return self._follow(_Calls.fleet_events(robot_id, last_event_id, reconnect, idle_timeout_s))
+
+    def _follow(self, follow: _Follow) -> Iterator[StreamEvent]:
+        while True:
+            refused: httpx.Response | None = None
+            try:
+                call = follow.request()
+                timeout = _stream_timeout(self.http.timeout, follow)
+                with self.http.stream(call.method, call.path, timeout=timeout, **call.kwargs) as response:
+                    if response.status_code >= 400:
+                        response.read()
+                        if follow.gone(response):
+                            return
+                        refused = follow.refused(response, self.retries)
+                    else:
+                        follow.opened()
+                        parser = _SseParser()
+                        for line in response.iter_lines():
+                            event = parser.feed(line)
+                            if event is not None:
+                                over = follow.took(event)
+                                yield event
+                                if over:
+                                    return
+            except httpx.TransportError:
+                if not follow.lost(self.retries):
+                    raise
+            if not follow.reconnect:
+                return
+            if follow.failures:  # else the server ended the stream: resume at once
+                time.sleep(_pause(follow.failures - 1, self.backoff_s, refused))
+
     def close(self) -> None:
         self.http.close()
 
@@ -383,6 +546,59 @@ class AsyncVLMapClient:
 
     async def get_belief_grid(self, session_id: str, layers: bool = False) -> BeliefGrid:
         return _grid(await self._send(_Calls.get_belief_grid(session_id, layers)))
+
+    def session_events(
+        self,
+        session_id: str,
+        last_event_id: str | None = None,
+        *,
+        reconnect: bool = True,
+        idle_timeout_s: float = 60.0,
+    ) -> AsyncIterator[StreamEvent]:
+        """As `VLMapClient.session_events`."""
+        return self._follow(_Calls.session_events(session_id, last_event_id, reconnect, idle_timeout_s))
+
+    def fleet_events(
+        self,
+        robot_id: str | None = None,
+        last_event_id: str | None = None,
+        *,
+        reconnect: bool = True,
+        idle_timeout_s: float = 60.0,
+    ) -> AsyncIterator[StreamEvent]:
+        """As `VLMapClient.fleet_events`."""
+        return self._follow(_Calls.fleet_events(robot_id, last_event_id, reconnect, idle_timeout_s))
+
+    async def _follow(self, follow: _Follow) -> AsyncIterator[StreamEvent]:
+        while True:
+            refused: httpx.Response | None = None
+            try:
+                call = follow.request()
+                timeout = _stream_timeout(self.http.timeout, follow)
+                stream = self.http.stream(call.method, call.path, timeout=timeout, **call.kwargs)
+                async with stream as response:
+                    if response.status_code >= 400:
+                        await response.aread()
+                        if follow.gone(response):
+                            return
+                        refused = follow.refused(response, self.retries)
+                    else:
+                        follow.opened()
+                        parser = _SseParser()
+                        async for line in response.aiter_lines():
+                            event = parser.feed(line)
+                            if event is not None:
+                                over = follow.took(event)
+                                yield event
+                                if over:
+                                    return
+            except httpx.TransportError:
+                if not follow.lost(self.retries):
+                    raise
+            if not follow.reconnect:
+                return
+            if follow.failures:
+                await asyncio.sleep(_pause(follow.failures - 1, self.backoff_s, refused))
 
     async def aclose(self) -> None:
         await self.http.aclose()
