@@ -12,6 +12,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from app.belief.grid import DEFAULT_MAX_VOXELS
 from app.scene_graph.model import MAX_OBJECTS_CEILING, MAX_REGIONS_CEILING
 from app.stores.base import DEFAULT_IDEMPOTENCY_KEYS, DEFAULT_IDEMPOTENCY_WINDOW_S, DEFAULT_TTL_S
+from app.stores.events import DEFAULT_HISTORY as DEFAULT_EVENT_HISTORY
 from app.stores.redis_store import DEFAULT_MIRROR_BYTES
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -100,6 +101,45 @@ class Settings(BaseSettings):
         ge=0,
         description="A session whose belief was read within this many seconds gets each new version "
         "summarised in the background, ready for the next poll (0: summarise only when asked).",
+    )
+    events_heartbeat_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="An event stream sends a comment line after this many seconds without an event, so that "
+        "proxies keep it open and a client can tell a quiet stream from a dead one; a session stream checks "
+        "then that its session still exists.",
+    )
+    events_buffer: int = Field(
+        default=256,
+        ge=1,
+        description="Events one stream may hold that its client has not read; one more and the stream is cut "
+        "(the client resumes with Last-Event-ID): a client that does not read costs this much, and slows no "
+        "writer and no other stream.",
+    )
+    events_history: int = Field(
+        default=DEFAULT_EVENT_HISTORY,
+        ge=1,
+        description="Events each session keeps (at least) for a stream resumed with Last-Event-ID; an older "
+        "id gets a `sync` event, telling the client to read the summary again. On Redis, in the session's "
+        "stream (about 400 bytes an event; Redis may keep up to 100 more).",
+    )
+    events_fleet_history: int = Field(
+        default=4096,
+        ge=1,
+        description="Events each process keeps, of every session, for fleet streams (/v1/events) resumed "
+        "with Last-Event-ID.",
+    )
+    events_max_stream_s: float = Field(
+        default=600.0,
+        gt=0,
+        description="An event stream ends after this long (the client resumes with Last-Event-ID): streams "
+        "spread over new replicas, and a key's access is checked again.",
+    )
+    max_event_streams: int = Field(
+        default=256,
+        ge=1,
+        description="Event streams one process serves at once (429 above): each holds a connection of "
+        "max_connections, which robots' requests need too.",
     )
     max_sessions_per_robot: int = Field(default=16, ge=1, description="Live sessions per robot (429 above).")
     max_grid_voxels: int = Field(

@@ -52,6 +52,8 @@ _settings = Settings(  # type: ignore[call-arg]
     log_json=False,
     rate_limit_per_s=0,
     api_keys=json.dumps([{"name": "ci-admin", "role": "admin", "sha256": digest(_ADMIN_KEY)}]),
+    # An event stream answers through the ASGI transport only once it ends: here, at once.
+    events_max_stream_s=0.05,
 )
 _app = create_app(_settings, sensors=build_sensors(_settings, Metrics()), store=MemorySessionStore(None))
 schema = schemathesis.openapi.from_asgi("/openapi.json", _app)

@@ -43,6 +43,7 @@ _LIMIT_STATUS = {
     "max_sessions_per_robot": 429,
     "max_concurrent_decodes": 429,
     "max_concurrent_grids": 429,
+    "max_event_streams": 429,
 }
 #: Characters of a validation message or context value kept in a 422 answer (inputs can be huge).
 _DETAIL_CHARS = 200

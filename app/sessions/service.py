@@ -10,6 +10,8 @@ whole layers or grids runs on the worker threads (`run`); the store decides what
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -17,7 +19,7 @@ import math
 import uuid
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Literal, TypeVar
 
 import numpy as np
 
@@ -39,9 +41,11 @@ from app.scene_graph.model import SceneGraph
 from app.sessions import changes
 from app.sessions.batch import ObservationBatch
 from app.sessions.changes import Caller
+from app.sessions.events import EventHub, EventStream, SessionFollow, Sync
 from app.sessions.summaries import Belief, SummaryCache
 from app.settings import Settings
 from app.stores.base import Idempotency, IdempotencyRecord, SessionStore
+from app.stores.events import StoredEvent
 from app.vocabulary import head_noun, lemmas, lexical_match, object_nouns
 
 log = logging.getLogger("vlmap.sessions")
@@ -93,6 +97,7 @@ class PreparedUtterance:
     sensor: LanguageSensor
     fused: bool
     reason: str | None
+    utterance: str = ""  # its text, for the session's event
 
 
 def utterance_verdict(target_label: str, result: Grounding) -> tuple[bool, str | None]:
@@ -142,6 +147,13 @@ class SessionService:
         self.run = run
         self.summaries = SummaryCache(watch_s=settings.summary_watch_s)
         self._ahead: set[asyncio.Task[None]] = set()
+        store.events.history = settings.events_history
+        self.events = EventHub(
+            store.events,
+            capacity=settings.events_buffer,
+            fleet_history=settings.events_fleet_history,
+            max_streams=settings.max_event_streams,
+        )
 
     # -- helpers --------------------------------------------------------------------------------------------
 
@@ -278,7 +290,9 @@ class SessionService:
         info = await self._writable(caller, session_id)
         await self.run(self._check_places, info.grid, scene_graph)
         replayed = False
-        change = changes.scene_graph(scene_graph, caller=caller)
+        sizes = {"objects": len(scene_graph.objects), "regions": len(scene_graph.regions)}
+        cause = {"kind": "scene_graph", **sizes}
+        change = dataclasses.replace(changes.scene_graph(scene_graph, caller=caller), event=lambda _: cause)
         try:
             await self.store.update(session_id, change, idempotency=idempotency)
         except AlreadyApplied as exc:
@@ -288,19 +302,25 @@ class SessionService:
 
     # -- language -------------------------------------------------------------------------------------------
 
-    async def prepare_utterance(self, caller: Caller, session_id: str, ground: Ground) -> PreparedUtterance:
-        """Ground an utterance in the session's scene graph, once the caller may write the session."""
+    async def prepare_utterance(
+        self, caller: Caller, session_id: str, ground: Ground, utterance: str = ""
+    ) -> PreparedUtterance:
+        """Ground an utterance (`utterance`: its text) in the session's scene graph, once the caller may write
+        the session."""
         info = await self._writable(caller, session_id)
         grounding, sensor = await ground(await self.store.scene_graph(session_id))
         fused, reason = utterance_verdict(info.target_label, grounding)
-        return PreparedUtterance(info, grounding, sensor, fused, reason)
+        return PreparedUtterance(info, grounding, sensor, fused, reason, utterance)
 
     async def fuse_utterance(
         self, caller: Caller, prepared: PreparedUtterance, idempotency: Idempotency | None = None
     ) -> Applied[Belief]:
         """Fuse a prepared utterance unless its verdict refused it; while the session has no target class, the
-        utterance's target phrase names it in the same update. `idempotency.answer` is remembered with it."""
+        utterance's target phrase names it in the same update. `idempotency.answer` is remembered with it.
+        A refused utterance changes no version, but the session's event stream is told of it."""
         info, replayed, answer = prepared.info, False, b""
+        cause = {"kind": "utterance", "utterance": prepared.utterance, "fused": prepared.fused}
+        cause |= {"reason": prepared.reason, "named_target": None}
         if prepared.fused:
             target = prepared.grounding.proposal.parse.target
             names = None
@@ -309,10 +329,14 @@ class SessionService:
             mixture = prepared.grounding.mixture
             log_likelihood = await self.run(language_log_likelihood, info.grid, mixture)
             change = changes.utterance(mixture, log_likelihood, info.grid, names_target=names, caller=caller)
+            cause["named_target"] = names
+            change = dataclasses.replace(change, event=lambda _: cause)
             try:
                 await self.store.update(info.id, change, idempotency=idempotency)
             except AlreadyApplied as exc:
                 answer, replayed = self._replay(exc.record, idempotency, caller).answer, True
+        else:
+            await self.store.announce(info.id, cause)
         return Applied(await self.belief(caller, info.id), replayed=replayed, answer=answer)
 
     # -- vision ---------------------------------------------------------------------------------------------
@@ -329,6 +353,14 @@ class SessionService:
         """Fuse one batch of labels or detections; with its summary, or with it made ahead in the background
         for those who watch the session."""
         change = changes.observations(batch, self.settings.max_batch_voxels, caller=caller)
+        kind = "labels" if batch.p_target is None else "detections"
+
+        def cause(result: UpdateResult) -> dict[str, Any]:
+            counts = {"voxels_updated": result.voxels_updated, "voxels_outside": result.voxels_outside}
+            return {"kind": "observations", "batch": kind, **counts}
+
+        stamp = batch.stamp if batch.stamp is not None and math.isfinite(batch.stamp) else None
+        change = dataclasses.replace(change, event=lambda r: cause(r) | {"stamp": stamp})
         replayed = False
         try:
             result = await self.store.update(session_id, change, idempotency=idempotency)
@@ -401,8 +433,78 @@ class SessionService:
         await self._readable(caller, session_id)
         return await self.store.load(session_id)
 
+    # -- the push stream ------------------------------------------------------------------------------------
+
+    async def session_events(
+        self, caller: Caller, session_id: str, last_event_id: str | None = None
+    ) -> EventStream:
+        """A stream of the session's events (`app.sessions.events`): those after `last_event_id` when the
+        history still holds them, else a `sync`, then the live ones; it ends after the session's deletion."""
+        await self._readable(caller, session_id)
+        events = self.store.events
+        sub = await self.events.session(session_id)
+
+        async def alive() -> bool:
+            try:
+                await self.store.head(session_id)
+            except NotFound:
+                return False
+            except VLMapError:  # an outage: the session may well be there
+                return True
+            return True
+
+        follow = SessionFollow(events, session_id, "", alive)
+
+        async def resync(reason: Literal["start", "expired", "gap"]) -> Sync:
+            tail = await events.tail(session_id)
+            follow.at(tail)
+            info = await self.store.head(session_id)
+            fields = {"session_id": session_id, "robot_id": info.robot_id, "version": info.version}
+            fields["summary_url"] = f"/v1/sessions/{session_id}/belief"
+            return Sync(reason, f"{session_id}:{tail}", fields)
+
+        try:
+            replayed = None
+            if last_event_id is not None:
+                named, _, after = last_event_id.partition(":")
+                if named == session_id and events.order(after) is not None:
+                    replayed = await events.replay(session_id, after)
+                    follow.at(after)
+            first: list[Any] = list(replayed) if replayed is not None else []
+            if replayed is None:
+                first = [await resync("start" if last_event_id is None else "expired")]
+        except BaseException:
+            sub.end()
+            raise
+        return EventStream(sub, first, resync=functools.partial(resync, "gap"), session=follow)
+
+    async def fleet_events(
+        self, caller: Caller, robot_id: str | None = None, last_event_id: str | None = None
+    ) -> EventStream:
+        """A stream of the events of every session the caller may read (of `robot_id`'s only, if given):
+        those after `last_event_id` that this process still holds, else a `sync`, then the live ones."""
+        if robot_id is not None:
+            caller.require_read(robot_id)
+
+        def accepts(event: StoredEvent) -> bool:
+            return caller.can_read(event.robot_id)
+
+        sub, replayed, last = await self.events.fleet(accepts, robot_id, last_event_id)
+        query = f"?robot_id={robot_id}" if robot_id is not None else ""
+        fields: dict[str, Any] = {"robot_id": robot_id} if robot_id is not None else {}
+        fields["sessions_url"] = f"/v1/sessions{query}"
+        first: list[Any] = list(replayed) if replayed is not None else []
+        if replayed is None:
+            first = [Sync("start" if last_event_id is None else "expired", last, fields)]
+
+        async def resync() -> Sync:
+            return Sync("gap", None, fields)
+
+        return EventStream(sub, first, resync=resync)
+
     async def close(self) -> None:
-        """Stop summarising ahead (a job running now is cancelled)."""
+        """Stop summarising ahead (a job running now is cancelled) and end the event streams."""
         for task in list(self._ahead):
             task.cancel()
         await asyncio.gather(*self._ahead, return_exceptions=True)
+        await self.events.close()

@@ -128,7 +128,7 @@ async def post_utterance(
     options = body.options or schemas.GroundOptions()
     ground = partial(services.ground, sensors, options.grounder, options.proposer)
     ground = partial(ground, utterance=body.utterance, hypotheses=caller_hypotheses(options))
-    prepared = await sessions.prepare_utterance(principal, session_id, ground)
+    prepared = await sessions.prepare_utterance(principal, session_id, ground, body.utterance)
     grounding, reason = to_response(prepared.grounding, prepared.sensor, None), prepared.reason
     keyed = with_answer(idempotency, schemas.UtteranceOut.answer(grounding, reason))
     applied = _marked(await sessions.fuse_utterance(principal, prepared, keyed), response)
