@@ -79,6 +79,9 @@ from app.vocabulary import in_classes
 #: Height above an object's top surface that still counts as "on" it (metres): most things people leave
 #: on furniture (bags, cups, laptops, books) are under 30 cm tall.
 ON_MARGIN_M = 0.3
+#: What a summary holds, as a number: summaries shared between processes (the Redis store) are keyed by it,
+#: so that a replica never reads one made under another definition (2: support places and structure).
+SUMMARY_FORMAT = 2
 #: Voxels per block in the top-k search; 1024 float32 values make one cheap SIMD row maximum.
 _TOPK_BLOCK = 1024
 #: Voxels per chunk of the two passes over the grid (256 kB of float32: stays in L2).

@@ -59,7 +59,8 @@ def utterance(
     caller: Caller | None = None,
 ) -> Change:
     """Fuse one utterance (equation (3)): its mixture's `log_likelihood` on `grid` (the session's, from
-    `app.belief.session.language_log_likelihood`). `names_target` names the target class in the same
+    `app.belief.session.language_log_likelihood` at the session's span; sessions made through the API all
+    have the default one). `names_target` names the target class in the same
     update if the session has none yet."""
     mixture = float64_mixture(mixture)
 

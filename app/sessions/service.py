@@ -33,7 +33,7 @@ from app.belief.session import (
     language_log_likelihood,
     new_session,
 )
-from app.belief.summary import PosteriorSummary, place_voxels
+from app.belief.summary import SUMMARY_FORMAT, PosteriorSummary, place_voxels
 from app.errors import AlreadyApplied, IdempotencyKeyReused, InvalidInput, LimitExceeded, NotFound, VLMapError
 from app.grounding.sensor import Grounding, LanguageSensor
 from app.scene_graph.limits import check_coordinates
@@ -396,7 +396,7 @@ class SessionService:
         cached = self.summaries.get(info.id, info.version, top_k)
         if cached is not None:
             return cached
-        options = json.dumps({"top_k": top_k}, sort_keys=True)
+        options = json.dumps({"format": SUMMARY_FORMAT, "top_k": top_k}, sort_keys=True)
         stored = await self.store.summary_get(info.id, info.version, options)
         if stored is not None:
             belief = Belief(info.id, info.version, info.target_label, PosteriorSummary.from_dict(stored))

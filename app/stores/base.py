@@ -128,10 +128,11 @@ class IdempotencyLog:
 @dataclass(frozen=True)
 class LanguageDelta:
     """An utterance's term of the language layer: its mixture (float64, what a log keeps and replays) and
-    equation (3)'s increment on the session's grid, `app.belief.session.language_log_likelihood`."""
+    equation (3)'s increment on the session's grid, `app.belief.session.language_log_likelihood` at the
+    session's span (relative to its best voxel: the layer is defined up to a constant)."""
 
     mixture: GaussianMixture
-    log_likelihood: np.ndarray  # (N,) float64
+    log_likelihood: np.ndarray  # (N,) float32, max 0
 
 
 @dataclass(frozen=True)
