@@ -9,7 +9,8 @@ from fastapi import Query
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Strict, Tag, TypeAdapter
 from pydantic.config import JsonDict
 
-from app.belief.session import SensorModel
+from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_VOXEL_SIZE_M
+from app.belief.session import DEFAULT_FALSE_POSITIVE_RATE, DEFAULT_TRUE_POSITIVE_RATE, SensorModel
 from app.grounding.relations import Relation
 from app.scene_graph.model import Id, SceneGraph, Vec3
 from app.sessions.service import GridRequest, NewSession
@@ -236,9 +237,11 @@ class GridSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    voxel_size: float = Field(default=0.1, ge=0.02, le=2.0, allow_inf_nan=False, description="Metres.")
+    voxel_size: float = Field(
+        default=DEFAULT_VOXEL_SIZE_M, ge=0.02, le=2.0, allow_inf_nan=False, description="Metres."
+    )
     margin: float = Field(
-        default=0.5, ge=0.0, le=10.0, allow_inf_nan=False, description="Metres around the map."
+        default=DEFAULT_MARGIN_M, ge=0.0, le=10.0, allow_inf_nan=False, description="Metres around the map."
     )
     min_corner: Vec3 | None = Field(default=None, description="Explicit lower corner (with max_corner).")
     max_corner: Vec3 | None = None
@@ -249,8 +252,8 @@ class SensorModelIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    tp: float = Field(default=0.9, gt=0.0, lt=1.0)
-    fp: float = Field(default=0.05, gt=0.0, lt=1.0)
+    tp: float = Field(default=DEFAULT_TRUE_POSITIVE_RATE, gt=0.0, lt=1.0)
+    fp: float = Field(default=DEFAULT_FALSE_POSITIVE_RATE, gt=0.0, lt=1.0)
 
 
 LabelIdText = Annotated[str, Field(pattern=r"^[0-9]{1,10}$", description="A uint32 label id, in decimal.")]
