@@ -5,7 +5,8 @@ for a few ScanNet episodes of the unseen validation cases, every method the serv
 when models/lsm holds weights), and prints episodes per minute (an episode = all methods on it), the time a
 50-episode x 100-step run would take at that rate (the issue's target: under 10 minutes), and where the time
 went: camera ray casts and the simulated segmenter (realistic perception by default; computed in a
-background thread while the service works), the main thread waiting for those frames, the HTTP calls by kind, and the rest.
+background thread while the service works), the main thread waiting for those frames, the HTTP calls by
+kind, and the rest.
 """
 
 from __future__ import annotations
