@@ -20,6 +20,8 @@ _COMMAND_MODULES = {
     "fit-proposer": "app.training.referents",
     "sim": "app.sim.cli",
     "eval": "app.evaluation.cli",
+    "foxglove": "app.foxglove.cli",
+    "record": "app.foxglove.cli",
 }
 
 

@@ -252,6 +252,15 @@ class _Calls:
         return _Follow("/v1/events", params, after, reconnect, idle_s, session=False)
 
     @staticmethod
+    def get_recording(session_id: str, after: int | None) -> Request:
+        params = {"after": after} if after is not None else {}
+        return Request("GET", f"/v1/sessions/{session_id}/recording", {"params": params})
+
+    @staticmethod
+    def get_recording_mcap(session_id: str) -> Request:
+        return Request("GET", f"/v1/sessions/{session_id}/recording.mcap", {})
+
+    @staticmethod
     def get_belief_grid(session_id: str, layers: bool) -> Request:
         params = {"format": "grid", "layers": str(layers).lower()}
         return Request("GET", f"/v1/sessions/{session_id}/belief", {"params": params})
@@ -402,6 +411,14 @@ class VLMapClient:
     def get_belief_grid(self, session_id: str, layers: bool = False) -> BeliefGrid:
         return _grid(self._send(_Calls.get_belief_grid(session_id, layers)))
 
+    def get_recording(self, session_id: str, after: int | None = None) -> dict[str, Any]:
+        """The session's recorded frames (after version `after`): `RecordingOut` in the OpenAPI."""
+        return _object(self._send(_Calls.get_recording(session_id, after)))
+
+    def get_recording_mcap(self, session_id: str) -> bytes:
+        """The session's recording as an MCAP file (the topics of the live Foxglove view)."""
+        return _checked(self._send(_Calls.get_recording_mcap(session_id))).content
+
     def session_events(
         self,
         session_id: str,
@@ -546,6 +563,12 @@ class AsyncVLMapClient:
 
     async def get_belief_grid(self, session_id: str, layers: bool = False) -> BeliefGrid:
         return _grid(await self._send(_Calls.get_belief_grid(session_id, layers)))
+
+    async def get_recording(self, session_id: str, after: int | None = None) -> dict[str, Any]:
+        return _object(await self._send(_Calls.get_recording(session_id, after)))
+
+    async def get_recording_mcap(self, session_id: str) -> bytes:
+        return _checked(await self._send(_Calls.get_recording_mcap(session_id))).content
 
     def session_events(
         self,

@@ -13,6 +13,7 @@ from app.belief.grid import DEFAULT_MAX_VOXELS
 from app.scene_graph.model import MAX_OBJECTS_CEILING, MAX_REGIONS_CEILING
 from app.stores.base import DEFAULT_IDEMPOTENCY_KEYS, DEFAULT_IDEMPOTENCY_WINDOW_S, DEFAULT_TTL_S
 from app.stores.events import DEFAULT_HISTORY as DEFAULT_EVENT_HISTORY
+from app.stores.recording import DEFAULT_RECORDING_FRAMES
 from app.stores.redis_store import DEFAULT_MIRROR_BYTES
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -101,6 +102,13 @@ class Settings(BaseSettings):
         ge=0,
         description="A session whose belief was read within this many seconds gets each new version "
         "summarised in the background, ready for the next poll (0: summarise only when asked).",
+    )
+    recording_frames: int = Field(
+        default=DEFAULT_RECORDING_FRAMES,
+        ge=0,
+        description="Frames each session's recording keeps (`GET .../recording.mcap`): one per belief "
+        "version, about 6 kB each (the summary and its 100 top voxels), older ones thinned to every second "
+        "past the limit (app.sessions.recording); 0: no recording, and no cost per update.",
     )
     events_heartbeat_s: float = Field(
         default=10.0,

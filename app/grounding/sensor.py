@@ -64,6 +64,15 @@ class Grounding:
     def grounded(self) -> bool:
         return self.proposal.grounded
 
+    def component_hypotheses(self) -> list[int | None]:
+        """The index in `hypotheses` of each Gaussian of the mixture, None for one of no hypothesis.
+
+        The mixture holds the densities' Gaussians first, in hypothesis order; a Gaussian after them (a broad
+        prior, all of them when the utterance was not grounded) belongs to no hypothesis.
+        """
+        owners: list[int | None] = [h for h, density in enumerate(self.densities) for _ in density.weights]
+        return owners + [None] * (len(self.mixture.weights) - len(owners))
+
 
 class LanguageSensor:
     """Proposer then grounder; every stage timed (and reported to `observer`, e.g. Prometheus)."""

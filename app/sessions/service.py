@@ -16,8 +16,9 @@ import hashlib
 import json
 import logging
 import math
+import time
 import uuid
-from collections.abc import Awaitable, Callable, Mapping, Sequence
+from collections.abc import Awaitable, Callable, Coroutine, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Generic, Literal, TypeVar
 
@@ -42,6 +43,7 @@ from app.sessions import changes
 from app.sessions.batch import ObservationBatch
 from app.sessions.changes import Caller
 from app.sessions.events import EventHub, EventStream, SessionFollow, Sync
+from app.sessions.recording import RECORD_TOP_K, Frame, merged, scene_graph_part, utterance_part
 from app.sessions.summaries import Belief, SummaryCache
 from app.settings import Settings
 from app.stores.base import Idempotency, IdempotencyRecord, SessionStore
@@ -256,6 +258,7 @@ class SessionService:
         except AlreadyApplied as exc:
             self._replay(exc.record, idempotency, caller)
             return Applied(await self.store.head(session.id), replayed=True)
+        await self._record(info.id, {"kind": "created"}, scene_graph=request.scene_graph)
         return Applied(info)
 
     async def sessions(self, caller: Caller, robot_id: str | None = None) -> list[SessionInfo]:
@@ -298,6 +301,8 @@ class SessionService:
         except AlreadyApplied as exc:
             self._replay(exc.record, idempotency, caller)
             replayed = True
+        else:
+            await self._record(session_id, cause, scene_graph=scene_graph)
         return Applied(await self.store.head(session_id), replayed=replayed)
 
     # -- language -------------------------------------------------------------------------------------------
@@ -337,6 +342,9 @@ class SessionService:
                 answer, replayed = self._replay(exc.record, idempotency, caller).answer, True
         else:
             await self.store.announce(info.id, cause)
+        if not replayed:
+            said = utterance_part(prepared.utterance, prepared.fused, prepared.reason, prepared.grounding)
+            await self._record(info.id, cause, utterance=said, summarised=prepared.fused)
         return Applied(await self.belief(caller, info.id), replayed=replayed, answer=answer)
 
     # -- vision ---------------------------------------------------------------------------------------------
@@ -370,8 +378,12 @@ class SessionService:
             replayed = True
         belief = None
         if with_summary:
+            if not replayed:
+                await self._record(session_id, cause(result) | {"stamp": stamp})
             belief = await self.belief(caller, session_id)
         else:
+            if not replayed:
+                self._in_background(self._record(session_id, cause(result) | {"stamp": stamp}))
             self._summarise_ahead(session_id)
         return Applied((result, belief), replayed=replayed)
 
@@ -396,6 +408,12 @@ class SessionService:
         cached = self.summaries.get(info.id, info.version, top_k)
         if cached is not None:
             return cached
+        wider = self.summaries.get(info.id, info.version, RECORD_TOP_K) if top_k < RECORD_TOP_K else None
+        if wider is not None:  # the recording's summary of this version: its first top_k voxels are these
+            top = wider.summary.top_voxels[:top_k]
+            belief = dataclasses.replace(wider, summary=dataclasses.replace(wider.summary, top_voxels=top))
+            self.summaries.put(top_k, belief)
+            return belief
         options = json.dumps({"format": SUMMARY_FORMAT, "top_k": top_k}, sort_keys=True)
         stored = await self.store.summary_get(info.id, info.version, options)
         if stored is not None:
@@ -411,9 +429,12 @@ class SessionService:
     def _summarise_ahead(self, session_id: str) -> None:
         """Summarise the session's new version in the background if someone watches it."""
         top_ks = self.summaries.start_job(session_id)
-        if top_ks is None:
-            return
-        task = asyncio.get_running_loop().create_task(self._ahead_job(session_id, top_ks))
+        if top_ks is not None:
+            self._in_background(self._ahead_job(session_id, top_ks))
+
+    def _in_background(self, job: Coroutine[Any, Any, None]) -> None:
+        """Run a job after the answer, cancelled by `close`."""
+        task = asyncio.get_running_loop().create_task(job)
         self._ahead.add(task)
         task.add_done_callback(self._ahead.discard)
 
@@ -427,6 +448,45 @@ class SessionService:
                 log.info("background summary of %s skipped: %s", session_id, exc)
             if not self.summaries.end_job(session_id):
                 return
+
+    # -- the recording --------------------------------------------------------------------------------------
+
+    async def _record(
+        self,
+        session_id: str,
+        cause: Mapping[str, Any],
+        *,
+        utterance: dict[str, Any] | None = None,
+        scene_graph: SceneGraph | None = None,
+        summarised: bool = True,
+    ) -> None:
+        """Add the session's current version to its recording (`app.sessions.recording`): with its summary
+        unless `summarised` is False (an utterance that changed nothing). A failure is logged, never raised:
+        the update it follows is done."""
+        limit = self.settings.recording_frames
+        if limit <= 0:
+            return
+        try:
+            info = await self.store.head(session_id)
+            version, target, at, summary = info.version, info.target_label, time.time(), None
+            if summarised:
+                belief = await self._belief(info, RECORD_TOP_K)
+                version, target, at = belief.version, belief.target_label, info.updated_at
+                summary = belief.summary.to_dict()
+            graph = scene_graph_part(scene_graph) if scene_graph is not None else None
+            frame = Frame(version, at, dict(cause), target, summary, utterance, graph)
+            await self.store.record(session_id, frame.pack(), limit)
+        except VLMapError as exc:
+            log.warning("recording of %s skipped a version: %s", session_id, exc)
+
+    async def recording(self, caller: Caller, session_id: str, after: int | None = None) -> list[Frame]:
+        """The session's recorded frames, one per version, oldest first: those after version `after`, if
+        given (and the unfused utterances at it, which came after its frame)."""
+        await self._readable(caller, session_id)
+        frames = merged([Frame.unpack(raw) for raw in await self.store.recording(session_id)])
+        if after is None:
+            return frames
+        return [f for f in frames if f.version > after or (f.summary is None and f.version == after)]
 
     async def grid(self, caller: Caller, session_id: str) -> Session:
         """A consistent copy of the whole belief (and its layers), for a download."""

@@ -261,6 +261,15 @@ class SessionStore(Protocol):
         """Drop expired sessions now; returns how many."""
         ...
 
+    async def record(self, session_id: str, frame: bytes, limit: int) -> None:
+        """Append a packed frame to the session's recording, thinned past `limit` frames
+        (`app.sessions.recording.thin`); nothing when the session is gone. The log goes with the session."""
+        ...
+
+    async def recording(self, session_id: str) -> tuple[bytes, ...]:
+        """The session's recorded frames, oldest first (empty when none or gone)."""
+        ...
+
     @property
     def events(self) -> EventLog:
         """The sessions' events: one per version (written with it, atomically), per deletion and per

@@ -79,6 +79,7 @@ from app.stores.base import (
     unpack_mixture,
 )
 from app.stores.events import MemoryEventLog, describe
+from app.stores.recording import thin
 
 T = TypeVar("T")
 
@@ -246,6 +247,8 @@ class MemorySessionStore:
         self._clock = clock
         self.events = MemoryEventLog()
         self._entries: dict[str, _Entry] = {}
+        # session id -> its recording's packed frames (process memory only: app.sessions.recording)
+        self._recordings: dict[str, list[bytes]] = {}
         # deleted sessions' ids -> (robot id, the keys they remembered, their delete's among them)
         self._tombstones: dict[str, tuple[str, IdempotencyLog]] = {}
         self._registry_lock = threading.Lock()
@@ -487,6 +490,7 @@ class MemorySessionStore:
             with self._registry_lock:
                 if self._entries.get(entry.session.id) is entry:
                     del self._entries[entry.session.id]
+                    self._recordings.pop(entry.session.id, None)
         return True
 
     def _create(
@@ -680,6 +684,18 @@ class MemorySessionStore:
             finally:
                 entry.lock.release()
         await self._off_loop(partial(self._announce, session_id, cause))
+
+    async def record(self, session_id: str, frame: bytes, limit: int) -> None:
+        with self._registry_lock:  # under it a removed session's log is dropped: none is made again
+            if session_id in self._entries:
+                frames = self._recordings.setdefault(session_id, [])
+                frames.append(frame)
+                if len(frames) > limit:
+                    self._recordings[session_id] = thin(frames, limit)
+
+    async def recording(self, session_id: str) -> tuple[bytes, ...]:
+        with self._registry_lock:
+            return tuple(self._recordings.get(session_id, ()))
 
     def _purge_expired(self) -> int:
         if self.ttl_s is None:

@@ -160,6 +160,30 @@ return 1
 """
 )
 
+# KEYS: the session's recording (a list), its meta. ARGV: [1] the packed frame, [2] the frames kept.
+# Appends while the session exists, thins past the limit as `app.sessions.recording.thin` does (a dropped
+# frame is set to '' and all of them removed at once), and gives the list the session's expiry.
+# Returns 1 when appended, 0 without the session.
+RECORD_SCRIPT = """
+if redis.call('EXISTS', KEYS[2]) == 0 then return 0 end
+local n = redis.call('RPUSH', KEYS[1], ARGV[1])
+local limit = tonumber(ARGV[2])
+if n > limit then
+    local half, drop = math.floor(n / 2), false
+    for i = 1, half - 1 do
+        if string.sub(redis.call('LINDEX', KEYS[1], i), 1, 1) ~= 'k' then
+            if drop then redis.call('LSET', KEYS[1], i, '') end
+            drop = not drop
+        end
+    end
+    redis.call('LREM', KEYS[1], 0, '')
+    redis.call('LTRIM', KEYS[1], -2 * limit, -1)
+end
+local ttl = redis.call('PTTL', KEYS[2])
+if ttl > 0 then redis.call('PEXPIRE', KEYS[1], ttl) end
+return 1
+"""
+
 # KEYS: a robot's index. ARGV: [1] session id, [2] the score from which an entry counts as live, [3] the
 # reservation's score, [4] the robot's limit. Returns 1 when reserved (or already there), 0 at the limit.
 RESERVE_SCRIPT = """

@@ -125,6 +125,7 @@ from app.stores.redis_scripts import (
     COMMIT_SCRIPT,
     CREATE_SCRIPT,
     DELETE_SCRIPT,
+    RECORD_SCRIPT,
     RELEASE_SCRIPT,
     RENEW_SCRIPT,
     RESERVE_SCRIPT,
@@ -397,6 +398,7 @@ class RedisSessionStore:
                     "commit": COMMIT_SCRIPT,
                     "create": CREATE_SCRIPT,
                     "delete": DELETE_SCRIPT,
+                    "record": RECORD_SCRIPT,
                     "reserve": RESERVE_SCRIPT,
                     "release": RELEASE_SCRIPT,
                     "renew": RENEW_SCRIPT,
@@ -1017,6 +1019,7 @@ class RedisSessionStore:
             raise _not_found(session_id)
         self._client.zrem(self._index_key(), session_id)
         self._client.zrem(self._index_key(robot_id), session_id)
+        self._client.delete(self._key(session_id, "rec"))  # after the script: no frame is appended since
         self._mirror.drop(session_id)
 
     async def delete(self, session_id: str, *, idempotency: Idempotency | None = None) -> None:
@@ -1034,6 +1037,16 @@ class RedisSessionStore:
 
     async def announce(self, session_id: str, cause: Mapping[str, Any]) -> None:
         await _off_loop(functools.partial(self._announce, session_id, cause))
+
+    def _record(self, session_id: str, frame: bytes, limit: int) -> None:
+        keys = [self._key(session_id, "rec"), self._key(session_id, "meta")]
+        self._script("record")(keys=keys, args=[frame, limit])
+
+    async def record(self, session_id: str, frame: bytes, limit: int) -> None:
+        await _off_loop(functools.partial(self._record, session_id, frame, limit))
+
+    async def recording(self, session_id: str) -> tuple[bytes, ...]:
+        return tuple(await self._on_loop("lrange", self._key(session_id, "rec"), 0, -1))
 
     def _purge_expired(self) -> int:
         """Prune the index entries of sessions Redis has dropped (their keys expire by themselves)."""

@@ -104,20 +104,10 @@ def caller_hypotheses(options: GroundOptions | None) -> list[Hypothesis] | None:
     return [Hypothesis(tuple(h.anchor_ids), h.relation, weight=h.weight) for h in options.hypotheses]
 
 
-def component_hypotheses(result: Grounding) -> list[int | None]:
-    """The index in `result.hypotheses` of each Gaussian of the mixture, None for one of no hypothesis.
-
-    The mixture holds the densities' Gaussians first, in hypothesis order; a Gaussian after them (a broad
-    prior, all of them when the utterance was not grounded) belongs to no hypothesis.
-    """
-    owners: list[int | None] = [h for h, density in enumerate(result.densities) for _ in density.weights]
-    return owners + [None] * (len(result.mixture.weights) - len(owners))
-
-
 def to_response(result: Grounding, sensor: LanguageSensor, densities: list[float] | None) -> GroundResponse:
     parse = result.proposal.parse
     mixture = result.mixture
-    owners = component_hypotheses(result)
+    owners = result.component_hypotheses()
     return GroundResponse(
         target=TargetOut(label=parse.target),
         parse=ParseOut(
