@@ -4,9 +4,9 @@ Every state-changing session endpoint takes one. The key is remembered with the 
 same store write (`app.stores.base`), so that a request repeated after its answer was lost (a timeout, a
 replica killed mid-request, a Redis failover) is applied once:
 
-- the same key with the same request (method, path, content type and body) is answered as the first time,
-  with `Idempotent-Replayed: true`; what the answer embeds of the session's current state (its metadata, the
-  belief summary) is read anew;
+- the same key with the same request (method, path, query, content type and body) is answered as the first
+  time, with `Idempotent-Replayed: true`; what the answer embeds of the session's current state (its
+  metadata, the belief summary) is read anew;
 - the same key with another request is a 422 (`idempotency_key_reused`);
 - a key is remembered by its session for `idempotency_window_s`, and for its last
   `idempotency_keys_per_session` keys.
@@ -61,6 +61,8 @@ def idempotency_of(request: Request, key: str | None, body: bytes, answer: bytes
     digest = hashlib.sha256()
     for part in (request.method, request.url.path, request.headers.get("content-type", "")):
         digest.update(part.encode("latin-1", "replace") + b"\0")
+    if request.url.query:  # a binary scene-graph body's other fields; absent, the fingerprint is as before
+        digest.update(b"?" + request.url.query.encode("latin-1", "replace") + b"\0")
     digest.update(body)
     return Idempotency(text, digest.hexdigest()[:32], answer)
 
