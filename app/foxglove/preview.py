@@ -75,7 +75,7 @@ def render_png(mcap_path: Path, png_path: Path) -> None:
     from matplotlib.patches import Ellipse, Polygon, Rectangle
 
     last = last_messages(mcap_path)
-    fig, ax = plt.subplots(figsize=(7.5, 6), dpi=100)
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=100)
     for entity in getattr(last.get("scene_graph"), "entities", []):
         for cube in entity.cubes:
             c, s, yaw = cube.pose.position, cube.size, _yaw_of(cube.pose.orientation)
@@ -99,7 +99,7 @@ def render_png(mcap_path: Path, png_path: Path) -> None:
         ]
         xs, ys, ps = [p[0] for p in points], [p[1] for p in points], [p[3] for p in points]
         scatter = ax.scatter(xs, ys, c=ps, cmap="viridis", s=14, zorder=3)
-        fig.colorbar(scatter, ax=ax, label="posterior probability (top voxels)")
+        fig.colorbar(scatter, ax=ax, shrink=0.6, label="posterior probability (top voxels)")
     for entity in getattr(last.get("mixture"), "entities", []):
         for sphere in entity.spheres:
             c = sphere.pose.position
