@@ -1,7 +1,9 @@
 """`VLMapClient` (sync) and `AsyncVLMapClient`: what robots, dashboards and the simulator use.
 
-Numpy arrays in, msgpack on the wire for observation batches; JSON for everything else. Every non-2xx
-answer raises `VLMapHTTPError` carrying the service's error code, message and field.
+Numpy arrays in, msgpack on the wire for observation batches; JSON for everything else, except a scene graph
+given as bytes: Spark-DSG binary (``DynamicSceneGraph.to_binary()``, what Hydra streams) goes as the body
+itself, the request's other fields as query parameters. Every non-2xx answer raises `VLMapHTTPError` carrying
+the service's error code, message and field.
 
 Retries: every call that changes a session carries an `Idempotency-Key` (a fresh UUID per call unless the
 caller gives one), so every call can be repeated safely: one whose connection failed or timed out, or that
@@ -64,6 +66,17 @@ class Request:
 RETRIED_STATUSES = frozenset({429, 502, 503, 504})
 #: Longest pause between two attempts (seconds), whatever Retry-After says.
 MAX_PAUSE_S = 10.0
+#: The content type of a Spark-DSG binary scene graph.
+SPARK_DSG = "application/x-spark-dsg"
+
+
+def _with_scene_graph(scene_graph: Any, fields: dict[str, Any]) -> dict[str, Any]:
+    """Request arguments of a body of `scene_graph` and `fields`: JSON, or for Spark-DSG binary bytes the
+    bytes as the body and the fields as query parameters (text as it is, any other value as JSON)."""
+    if isinstance(scene_graph, bytes | bytearray):
+        params = {k: v if isinstance(v, str) else json.dumps(v) for k, v in fields.items()}
+        return {"content": bytes(scene_graph), "headers": {"content-type": SPARK_DSG}, "params": params}
+    return {"json": {"scene_graph": scene_graph, **fields}}
 
 
 def _keyed(key: str | None, **kwargs: Any) -> dict[str, Any]:
@@ -188,18 +201,13 @@ class _Calls:
 
     @staticmethod
     def ground(scene_graph: Any, utterance: str, **extra: Any) -> Request:
-        return Request(
-            "POST", "/v1/ground", {"json": {"scene_graph": scene_graph, "utterance": utterance, **extra}}
-        )
+        fields = {"utterance": utterance, **extra}
+        return Request("POST", "/v1/ground", _with_scene_graph(scene_graph, fields))
 
     @staticmethod
     def create_session(robot_id: str, scene_graph: Any, key: str | None = None, **fields: Any) -> Request:
-        body = {
-            "robot_id": robot_id,
-            "scene_graph": scene_graph,
-            **{k: v for k, v in fields.items() if v is not None},
-        }
-        return Request("POST", "/v1/sessions", _keyed(key, json=body))
+        given = {"robot_id": robot_id, **{k: v for k, v in fields.items() if v is not None}}
+        return Request("POST", "/v1/sessions", _keyed(key, **_with_scene_graph(scene_graph, given)))
 
     @staticmethod
     def list_sessions(robot_id: str | None) -> Request:
@@ -215,7 +223,11 @@ class _Calls:
 
     @staticmethod
     def replace_scene_graph(session_id: str, scene_graph: Any, key: str | None = None) -> Request:
-        return Request("PUT", f"/v1/sessions/{session_id}/scene-graph", _keyed(key, json=scene_graph))
+        if isinstance(scene_graph, bytes | bytearray):
+            body: dict[str, Any] = {"content": bytes(scene_graph), "headers": {"content-type": SPARK_DSG}}
+        else:
+            body = {"json": scene_graph}
+        return Request("PUT", f"/v1/sessions/{session_id}/scene-graph", _keyed(key, **body))
 
     @staticmethod
     def send_utterance(

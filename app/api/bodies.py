@@ -34,9 +34,14 @@ def media_type(request: Request, default: str = "application/json") -> str:
     return request.headers.get("content-type", default).split(";")[0].strip().lower() or default
 
 
+def is_json(kind: str) -> bool:
+    """Whether a media type (`media_type`'s) names JSON."""
+    return kind == "application/json" or kind.endswith("+json")
+
+
 def require_json(request: Request) -> None:
     kind = media_type(request)
-    if kind != "application/json" and not kind.endswith("+json"):
+    if not is_json(kind):
         msg = f"unsupported content type {kind!r}: send application/json"
         raise UnsupportedMediaType(msg, field="content-type")
 
@@ -66,18 +71,24 @@ def validate_json(adapter: TypeAdapter[T], raw: bytes, max_errors: int) -> T:
         raise InvalidInput(message, field=field or "body", details=listed) from None
 
 
+async def read_json(request: Request, adapter: TypeAdapter[T]) -> T:
+    """The request's JSON body validated by `adapter` (415 for another content type)."""
+    require_json(request)
+    raw = await json_bytes(request)
+    services = request.app.state.services
+    limit = services.settings.max_validation_errors
+    if len(raw) <= INLINE_JSON_BYTES:
+        return validate_json(adapter, raw, limit)
+    validated: T = await services.run(validate_json, adapter, raw, limit)
+    return validated
+
+
 def JsonBody(model: Any) -> Any:  # noqa: N802 (used like FastAPI's Body(), in Annotated)
     """A dependency giving the request's JSON body validated as `model` (a pydantic model or type)."""
     adapter: TypeAdapter[Any] = TypeAdapter(model)
 
     async def read_body(request: Request) -> Any:
-        require_json(request)
-        raw = await json_bytes(request)
-        services = request.app.state.services
-        limit = services.settings.max_validation_errors
-        if len(raw) <= INLINE_JSON_BYTES:
-            return validate_json(adapter, raw, limit)
-        return await services.run(validate_json, adapter, raw, limit)
+        return await read_json(request, adapter)
 
     return Depends(read_body)
 

@@ -203,6 +203,12 @@ OPERATION_PARAMETER_EXAMPLES: dict[str, dict[str, dict[str, dict[str, Any]]]] = 
     "normalize_scene_graph": {
         "format": {"region_grouped": _example("The region-grouped serialization", "region_grouped")}
     },
+    # The fields that go beside a Spark-DSG binary body.
+    "create_session": {
+        "robot_id": {"robot": _example("The robot the session is for", "robot-7")},
+        "grid": {"voxel_size": _example("A 0.25 m grid (JSON text)", '{"voxel_size": 0.25}')},
+    },
+    "ground": {"utterance": {"place": _example("Where the target was left", "my backpack is on the table")}},
 }
 
 

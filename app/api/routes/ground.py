@@ -7,9 +7,10 @@ from typing import Annotated, Any
 import numpy as np
 from fastapi import APIRouter
 
-from app.api.bodies import JsonBody, json_request_body, schema_ref
+from app.api.bodies import json_request_body, schema_ref
 from app.api.deps import PrincipalDep, SensorsDep, ServicesDep, SettingsDep
 from app.api.errors import error_responses
+from app.api.scene_graph_bodies import SceneGraphBody, with_spark_dsg
 from app.api.schemas import (
     ComponentOut,
     GroundOptions,
@@ -38,10 +39,10 @@ router = APIRouter(prefix="/v1", tags=["grounding"])
     operation_id="ground",
     response_model=GroundResponse,
     responses=error_responses(400, 401, 408, 413, 415, 422, 429, 503),
-    openapi_extra={"requestBody": json_request_body(schema_ref("GroundRequest"))},
+    openapi_extra={"requestBody": with_spark_dsg(json_request_body(schema_ref("GroundRequest")))},
 )
 async def ground(
-    body: Annotated[GroundRequest, JsonBody(GroundRequest)],
+    body: Annotated[GroundRequest, SceneGraphBody(GroundRequest)],
     sensors: SensorsDep,
     settings: SettingsDep,
     services: ServicesDep,

@@ -14,6 +14,7 @@ from app.api.deps import PrincipalDep, SensorsDep, ServicesDep, SessionsDep
 from app.api.errors import error_responses
 from app.api.idempotency import REPLAYED_HEADER, IdempotencyDep, replayable, with_answer
 from app.api.routes.ground import caller_hypotheses, resolve_scene_graph, to_response
+from app.api.scene_graph_bodies import SceneGraphBody, with_spark_dsg
 from app.api.wire import BELIEF_RESPONSES, OBSERVATION_REQUEST_BODY, belief_grid_response, read_batch
 from app.sessions import Applied
 
@@ -40,11 +41,11 @@ def _marked(applied: Applied[T], response: Response) -> Applied[T]:
     status_code=201,
     response_model=schemas.SessionOut,
     responses={**_WRITE_ERRORS, **replayable(201)},
-    openapi_extra={"requestBody": json_request_body(schema_ref("SessionCreate"))},
+    openapi_extra={"requestBody": with_spark_dsg(json_request_body(schema_ref("SessionCreate")))},
 )
 async def create_session(
     response: Response,
-    body: Annotated[schemas.SessionCreate, JsonBody(schemas.SessionCreate)],
+    body: Annotated[schemas.SessionCreate, SceneGraphBody(schemas.SessionCreate)],
     principal: PrincipalDep,
     services: ServicesDep,
     sessions: SessionsDep,
@@ -90,12 +91,12 @@ async def delete_session(
     operation_id="replace_scene_graph",
     response_model=schemas.SessionOut,
     responses={**_WRITE_ERRORS, **replayable()},
-    openapi_extra={"requestBody": json_request_body(schemas.scene_graph_payload_schema())},
+    openapi_extra={"requestBody": with_spark_dsg(json_request_body(schemas.scene_graph_payload_schema()))},
 )
 async def put_scene_graph(
     response: Response,
     session_id: str,
-    scene_graph: Annotated[object, JsonBody(schemas.SceneGraphPayload)],
+    scene_graph: Annotated[object, SceneGraphBody(schemas.SceneGraphPayload)],
     principal: PrincipalDep,
     services: ServicesDep,
     sessions: SessionsDep,
