@@ -124,6 +124,10 @@ class EventLog(Protocol):
         holds them all (or `after` names no event this log could have written)."""
         ...
 
+    async def retained(self, session_id: str) -> list[StoredEvent]:
+        """The events of the session that its history still holds, oldest first."""
+        ...
+
     async def tail(self, session_id: str) -> str:
         """An id to resume the session's events from: every later event of the session is after it."""
         ...
@@ -244,6 +248,11 @@ class MemoryEventLog:
             if order < history.forgotten:
                 return None
             return [event for event in history.events if event.order > order]
+
+    async def retained(self, session_id: str) -> list[StoredEvent]:
+        with self._lock:
+            history = self._sessions.get(session_id)
+            return list(history.events) if history is not None else []
 
     async def tail(self, session_id: str) -> str:
         with self._lock:

@@ -160,11 +160,23 @@ class RedisEventLog:
         never_trimmed = int(info["entries-added"]) == int(info["length"])
         if not (never_trimmed and order == (0, 0)) and (first is None or order < first):
             return None
-        events = []
-        for raw_id, fields in entries:
-            entry_id = raw_id.decode()
-            events.append(StoredEvent.of(entry_id, entry_order(entry_id) or (0, 0), fields[b"e"].decode()))
-        return events
+        return [self._event(raw_id, fields) for raw_id, fields in entries]
+
+    async def retained(self, session_id: str) -> list[StoredEvent]:
+        from redis.exceptions import RedisError
+
+        try:
+            client = await self._client()
+            entries = await client.xrange(self._key(session_id), "-", "+")
+        except RedisError as exc:
+            msg = f"the session store (Redis) is unavailable: {type(exc).__name__}: {exc}"
+            raise StoreUnavailable(msg) from exc
+        return [self._event(raw_id, fields) for raw_id, fields in entries]
+
+    @staticmethod
+    def _event(raw_id: bytes, fields: dict[bytes, bytes]) -> StoredEvent:
+        entry_id = raw_id.decode()
+        return StoredEvent.of(entry_id, entry_order(entry_id) or (0, 0), fields[b"e"].decode())
 
     def order(self, event_id: str) -> tuple[int, int] | None:
         return entry_order(event_id)
