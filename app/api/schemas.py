@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import json
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -18,7 +19,8 @@ from app.sessions.service import GridRequest, NewSession
 if TYPE_CHECKING:
     from app.belief.grid import VoxelGrid
     from app.belief.session import SessionInfo, UpdateResult
-    from app.sessions.summaries import Belief
+    from app.sessions.summaries import Belief, TopDown, UtteranceLog
+    from app.stores.events import StoredEvent
 
 #: Ceilings of the request lists that the service's configurable limits (`app.settings`) lie below: the
 #: validator refuses a longer list before reading its items (`app.api.bodies`).
@@ -397,6 +399,85 @@ class BeliefOut(BaseModel):
             target_label=belief.target_label or None,
             summary=PosteriorSummaryOut.model_validate(belief.summary.to_dict()),
         )
+
+
+class TopDownOut(BaseModel):
+    """The posterior seen from above: its mass in each (x, y) column of voxels of the session's grid (summed
+    over z), what a dashboard draws as a heat map. Cell (i, j) covers x in [x0 + i s, x0 + (i + 1) s) and y
+    in [y0 + j s, y0 + (j + 1) s), with (x0, y0) = `min_corner` and s = `voxel_size`."""
+
+    session_id: str
+    version: int = Field(description='The belief version (the ETag: "v<version>").')
+    min_corner: list[float] = Field(min_length=2, max_length=2, description="(x0, y0) of the grid (m).")
+    voxel_size: float = Field(description="s (m).")
+    shape: list[int] = Field(min_length=2, max_length=2, description="(nx, ny): cells along x and y.")
+    max_mass: float = Field(description="The largest cell's mass.")
+    mass: str = Field(
+        description="base64 of nx * ny little-endian float32 masses, cell (i, j) at index i * ny + j; they "
+        "sum to one."
+    )
+
+    @classmethod
+    def of(cls, view: TopDown) -> TopDownOut:
+        grid, mass = view.grid, view.mass
+        return cls(
+            session_id=view.session_id,
+            version=view.version,
+            min_corner=list(grid.origin[:2]),
+            voxel_size=grid.voxel_size,
+            shape=list(grid.shape[:2]),
+            max_mass=float(mass.max()),
+            mass=base64.b64encode(mass.astype("<f4").tobytes()).decode("ascii"),
+        )
+
+
+class ReadingOut(BaseModel):
+    """One reading of an utterance, as its event recorded it."""
+
+    text: str = Field(description='The reading, e.g. "on the table t1".')
+    weight: float = Field(description="P(h | utterance, map): the weights of its readings sum to 1.")
+    anchor_ids: list[str] = Field(description="The objects it is relative to (none: a region or the map).")
+
+
+class UtteranceRecordOut(BaseModel):
+    """An utterance sent to the session: what its event said (`UtteranceCause` of the push stream)."""
+
+    event_id: str = Field(description="Its event's id on the push stream.")
+    version: int = Field(description="The belief version after it (unchanged when it was not fused).")
+    updated_at: float = Field(description="When it was fused or refused (Unix s).")
+    utterance: str
+    fused: bool
+    reason: str | None
+    named_target: str | None
+    hypotheses: list[ReadingOut] | None = Field(
+        description="Its readings with their weights, as grounded (null in an event of an older release)."
+    )
+
+    @classmethod
+    def of(cls, event: StoredEvent) -> UtteranceRecordOut:
+        fields = json.loads(event.data)
+        cause = {key: value for key, value in fields["cause"].items() if key != "kind"}
+        return cls.model_validate(
+            {"event_id": event.stream_id, "version": event.version, "updated_at": fields["updated_at"]}
+            | {"hypotheses": None}
+            | cause
+        )
+
+
+class UtteranceHistoryOut(BaseModel):
+    """The utterances among the session's retained events, oldest first: the last `VLMAP_EVENTS_HISTORY`
+    events of every kind (observation batches among them), so at sensor rate only the recent ones."""
+
+    session_id: str
+    utterances: list[UtteranceRecordOut]
+    complete: bool = Field(
+        description="Whether the history reaches back to the session's creation (no older event was dropped)."
+    )
+
+    @classmethod
+    def of(cls, log: UtteranceLog) -> UtteranceHistoryOut:
+        utterances = [UtteranceRecordOut.of(event) for event in log.events]
+        return cls(session_id=log.session_id, utterances=utterances, complete=log.complete)
 
 
 class UtteranceIn(BaseModel):

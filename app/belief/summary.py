@@ -450,6 +450,34 @@ def cached_place_index(
     return index
 
 
+def _column_chunks(grid: VoxelGrid) -> list[tuple[int, int]]:
+    """(start, stop) flat ranges of whole (x, y) columns of voxels, small enough to stay in cache."""
+    nx, ny, nz = grid.shape
+    rows = max(1, _CHUNK_VOXELS // nz)
+    return [(r * nz, min(r + rows, nx * ny) * nz) for r in range(0, nx * ny, rows)]
+
+
+def column_mass(grid: VoxelGrid, lang: np.ndarray, vis: np.ndarray) -> np.ndarray:
+    """The belief seen from above: softmax(lang + vis) summed over z in each (x, y) column of voxels, (nx, ny)
+    float32 summing to one (what a dashboard draws as a heat map: nx * ny values instead of N)."""
+    nx, ny, nz = grid.shape
+    chunks = _column_chunks(grid)
+    scratch = np.empty(min(grid.n_voxels, chunks[0][1]), dtype=np.float32)
+    peak = -math.inf
+    for start, stop in chunks:
+        s = np.add(lang[start:stop], vis[start:stop], out=scratch[: stop - start])
+        peak = max(peak, float(s.max()))
+    cols = np.empty(nx * ny, dtype=np.float64)
+    for start, stop in chunks:
+        s = np.add(lang[start:stop], vis[start:stop], out=scratch[: stop - start])
+        s -= peak
+        np.maximum(s, _EXP_FLOOR, out=s)  # as in `summarize`: float32 exp slows down on underflow
+        np.exp(s, out=s)
+        cols[start // nz : stop // nz] = s.reshape(-1, nz).sum(axis=1, dtype=np.float64)
+    cols /= cols.sum()
+    return cols.reshape(nx, ny).astype(np.float32)
+
+
 def summarize(
     grid: VoxelGrid,
     lang: np.ndarray,
@@ -465,11 +493,10 @@ def summarize(
     (`scene_fingerprint`: its `scene_graph_fingerprint`, if known)."""
     n = grid.n_voxels
     nx, ny, nz = grid.shape
-    # Chunks of whole (x, y) columns, small enough to stay in cache; s = lang + vis is recomputed per chunk
-    # rather than stored, which saves a full-size array and two passes over it.
-    rows = max(1, _CHUNK_VOXELS // nz)
-    chunks = [(r * nz, min(r + rows, nx * ny) * nz) for r in range(0, nx * ny, rows)]
-    scratch = np.empty(min(n, rows * nz), dtype=np.float32)
+    # s = lang + vis is recomputed per chunk rather than stored, which saves a full-size array and two passes
+    # over it.
+    chunks = _column_chunks(grid)
+    scratch = np.empty(min(n, chunks[0][1]), dtype=np.float32)
 
     def log_weights(start: int, stop: int) -> np.ndarray:
         out = scratch[: stop - start]

@@ -18,6 +18,7 @@ import logging
 import math
 import time
 import uuid
+from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Coroutine, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Generic, Literal, TypeVar
@@ -34,7 +35,7 @@ from app.belief.session import (
     language_log_likelihood,
     new_session,
 )
-from app.belief.summary import SUMMARY_FORMAT, PosteriorSummary, place_voxels
+from app.belief.summary import SUMMARY_FORMAT, PosteriorSummary, column_mass, place_voxels
 from app.errors import AlreadyApplied, IdempotencyKeyReused, InvalidInput, LimitExceeded, NotFound, VLMapError
 from app.grounding.sensor import Grounding, LanguageSensor
 from app.scene_graph.limits import check_coordinates
@@ -44,7 +45,7 @@ from app.sessions.batch import ObservationBatch
 from app.sessions.changes import Caller
 from app.sessions.events import EventHub, EventStream, SessionFollow, Sync
 from app.sessions.recording import RECORD_TOP_K, Frame, merged, scene_graph_part, utterance_part
-from app.sessions.summaries import Belief, SummaryCache
+from app.sessions.summaries import Belief, SummaryCache, TopDown, UtteranceLog
 from app.settings import Settings
 from app.stores.base import Idempotency, IdempotencyRecord, SessionStore
 from app.stores.events import StoredEvent
@@ -54,6 +55,8 @@ log = logging.getLogger("vlmap.sessions")
 T = TypeVar("T")
 #: Runs a function on a worker thread: `run(func, *args)`.
 Runner = Callable[..., Awaitable[Any]]
+#: Sessions whose latest top-down view a process keeps (`SessionService.top_down`).
+TOP_DOWN_SESSIONS = 64
 #: Grounds an utterance in a scene graph with the parts the request named.
 Ground = Callable[[SceneGraph], Awaitable[tuple[Grounding, LanguageSensor]]]
 
@@ -148,6 +151,7 @@ class SessionService:
         self.settings = settings
         self.run = run
         self.summaries = SummaryCache(watch_s=settings.summary_watch_s)
+        self._top_downs: OrderedDict[str, TopDown] = OrderedDict()
         self._ahead: set[asyncio.Task[None]] = set()
         store.events.history = settings.events_history
         self.events = EventHub(
@@ -326,6 +330,10 @@ class SessionService:
         info, replayed, answer = prepared.info, False, b""
         cause = {"kind": "utterance", "utterance": prepared.utterance, "fused": prepared.fused}
         cause |= {"reason": prepared.reason, "named_target": None}
+        readings = prepared.grounding.hypotheses  # what a dashboard shows of the last utterance
+        cause["hypotheses"] = [
+            {"text": h.text, "weight": h.weight, "anchor_ids": list(h.anchor_ids)} for h in readings
+        ]
         if prepared.fused:
             target = prepared.grounding.proposal.parse.target
             names = None
@@ -487,6 +495,35 @@ class SessionService:
         if after is None:
             return frames
         return [f for f in frames if f.version > after or (f.summary is None and f.version == after)]
+
+    async def top_down(self, caller: Caller, session_id: str) -> TopDown:
+        """The belief seen from above (`column_mass`), computed once per version in this process: several
+        dashboards showing a session share it (the latest version of the last `TOP_DOWN_SESSIONS` sessions
+        asked for is kept)."""
+        info = await self._readable(caller, session_id)
+        cached = self._top_downs.get(session_id)
+        if cached is None or cached.version != info.version or cached.grid != info.grid:
+            session = await self.store.load(session_id)  # may be newer than `info`
+            mass = await self.run(column_mass, session.grid, session.belief.lang, session.belief.vis)
+            cached = TopDown(session_id, session.version, session.grid, mass)
+            self._top_downs[session_id] = cached
+        self._top_downs.move_to_end(session_id)
+        while len(self._top_downs) > TOP_DOWN_SESSIONS:
+            self._top_downs.popitem(last=False)
+        return cached
+
+    async def scene_graph(self, caller: Caller, session_id: str) -> SceneGraph:
+        """The scene graph the session grounds utterances in (its latest replacement)."""
+        await self._readable(caller, session_id)
+        return await self.store.scene_graph(session_id)
+
+    async def utterances(self, caller: Caller, session_id: str) -> UtteranceLog:
+        """The utterance events among the session's retained events (its last `events_history`, of every
+        kind), oldest first."""
+        await self._readable(caller, session_id)
+        events = await self.store.events.retained(session_id)
+        said = tuple(event for event in events if event.kind == "utterance")
+        return UtteranceLog(session_id, said, complete=bool(events) and events[0].kind == "created")
 
     async def grid(self, caller: Caller, session_id: str) -> Session:
         """A consistent copy of the whole belief (and its layers), for a download."""

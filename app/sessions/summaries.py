@@ -1,4 +1,5 @@
-"""Belief summaries by (session, version, top_k): an unchanged belief is not summarised twice.
+"""Belief summaries by (session, version, top_k): an unchanged belief is not summarised twice; and the other
+views a dashboard reads of a session (its top-down mass, its utterances).
 
 Versions are the store's, so entries stay right across replicas; an update makes a new key. Watched
 sessions are summarised ahead of their next poll: when a session's belief was read within the last
@@ -16,7 +17,11 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+
+from app.belief.grid import VoxelGrid
 from app.belief.summary import PosteriorSummary
+from app.stores.events import StoredEvent
 
 
 @dataclass(frozen=True)
@@ -27,6 +32,27 @@ class Belief:
     version: int
     target_label: str  # "" = not known yet
     summary: PosteriorSummary
+
+
+@dataclass(frozen=True)
+class TopDown:
+    """A session's belief seen from above at one version: the posterior mass of each (x, y) column of
+    voxels of `grid` (`app.belief.summary.column_mass`)."""
+
+    session_id: str
+    version: int
+    grid: VoxelGrid
+    mass: np.ndarray  # (nx, ny) float32, sums to one
+
+
+@dataclass(frozen=True)
+class UtteranceLog:
+    """A session's utterance events (`app.stores.events`) that its history still holds, oldest first;
+    `complete`: the history reaches back to the session's creation (no event of any kind was dropped)."""
+
+    session_id: str
+    events: tuple[StoredEvent, ...]
+    complete: bool
 
 
 class SummaryCache:

@@ -56,6 +56,9 @@ class UtteranceCause(_Cause):
     fused: bool = Field(description="Whether the belief took it (false: the version did not change).")
     reason: str | None = Field(description="Why it was not fused, or fused only as the broad prior.")
     named_target: str | None = Field(description="The target class it named, for a session that had none.")
+    hypotheses: list[schemas.ReadingOut] | None = Field(
+        default=None, description="Its readings with their weights, as grounded (absent before this release)."
+    )
 
 
 class ObservationsCause(_Cause):

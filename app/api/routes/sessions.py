@@ -16,6 +16,7 @@ from app.api.idempotency import REPLAYED_HEADER, IdempotencyDep, replayable, wit
 from app.api.routes.ground import caller_hypotheses, resolve_scene_graph, to_response
 from app.api.scene_graph_bodies import SceneGraphBody, with_spark_dsg
 from app.api.wire import BELIEF_RESPONSES, OBSERVATION_REQUEST_BODY, belief_grid_response, read_batch
+from app.scene_graph.model import SceneGraph
 from app.sessions import Applied
 
 T = TypeVar("T")
@@ -26,6 +27,14 @@ _AUTH = (401, 403, 429)
 _WRITE_ERRORS = error_responses(400, *_AUTH, 404, 408, 413, 415, 422, 503)
 _READ_ERRORS = error_responses(*_AUTH, 404, 422, 503)
 _DELETE_RESPONSES = {**_READ_ERRORS, **replayable(204)}
+_NOT_MODIFIED: dict[int | str, dict[str, object]] = {
+    304: {"description": "Not modified since the ETag given in If-None-Match."}
+}
+
+
+def _unchanged(version: int, if_none_match: str | None) -> bool:
+    """Whether If-None-Match names the belief version's ETag ("v<version>")."""
+    return if_none_match is not None and f'"v{version}"' in [t.strip() for t in if_none_match.split(",")]
 
 
 def _marked(applied: Applied[T], response: Response) -> Applied[T]:
@@ -182,9 +191,8 @@ async def get_belief(
 ) -> Response:
     """The fused posterior: summary (MAP, top voxels, moments, entropy, mass per object) or the whole grid."""
     info = await sessions.poll(principal, session_id, top_k)
-    tag = f'"v{info.version}"'
-    if if_none_match is not None and tag in [t.strip() for t in if_none_match.split(",")]:
-        return Response(status_code=304, headers={"ETag": tag})
+    if _unchanged(info.version, if_none_match):
+        return Response(status_code=304, headers={"ETag": f'"v{info.version}"'})
     if format == "grid":
 
         async def download(release: Callable[[], None]) -> Response:
@@ -197,3 +205,49 @@ async def get_belief(
     belief = await sessions.belief(principal, session_id, top_k, info)
     body = schemas.BeliefOut.of(belief).model_dump_json()
     return Response(body, media_type="application/json", headers={"ETag": f'"v{belief.version}"'})
+
+
+@router.get(
+    "/{session_id}/belief/topdown",
+    operation_id="get_belief_topdown",
+    response_model=schemas.TopDownOut,
+    responses={**_READ_ERRORS, **_NOT_MODIFIED},
+)
+async def get_belief_topdown(
+    session_id: str,
+    principal: PrincipalDep,
+    sessions: SessionsDep,
+    if_none_match: Annotated[str | None, Header()] = None,
+) -> Response:
+    """The posterior seen from above: its mass per (x, y) column of voxels, for a dashboard's heat map."""
+    info = await sessions.get(principal, session_id)
+    if _unchanged(info.version, if_none_match):
+        return Response(status_code=304, headers={"ETag": f'"v{info.version}"'})
+    view = await sessions.top_down(principal, session_id)
+    body = schemas.TopDownOut.of(view).model_dump_json()
+    return Response(body, media_type="application/json", headers={"ETag": f'"v{view.version}"'})
+
+
+@router.get(
+    "/{session_id}/scene-graph",
+    operation_id="get_scene_graph",
+    response_model=SceneGraph,
+    responses=_READ_ERRORS,
+)
+async def get_scene_graph(session_id: str, principal: PrincipalDep, sessions: SessionsDep) -> Response:
+    """The scene graph the session grounds utterances in (native format), e.g. to draw its objects."""
+    scene_graph = await sessions.scene_graph(principal, session_id)
+    return Response(scene_graph.model_dump_json(), media_type="application/json")
+
+
+@router.get(
+    "/{session_id}/utterances",
+    operation_id="list_utterances",
+    response_model=schemas.UtteranceHistoryOut,
+    responses=_READ_ERRORS,
+)
+async def list_utterances(
+    session_id: str, principal: PrincipalDep, sessions: SessionsDep
+) -> schemas.UtteranceHistoryOut:
+    """The utterances of the session's retained event history, with their readings and weights."""
+    return schemas.UtteranceHistoryOut.of(await sessions.utterances(principal, session_id))
