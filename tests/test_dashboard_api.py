@@ -1,5 +1,6 @@
 """What the dashboard reads besides the summary and the push stream: the top-down view of the belief, the
-session's scene graph and its utterances with their readings."""
+session's scene graph and its utterances with their readings; and the page itself, served with its assets.
+(The page in a real browser: tests/test_dashboard_browser.py.)"""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import base64
 import json
 import uuid
 from collections.abc import Iterator
+from html.parser import HTMLParser
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +19,7 @@ from fastapi.testclient import TestClient
 
 from app.api.app import create_app
 from app.api.auth import digest, new_key
+from app.api.routes.dashboard import DASHBOARD_DIR
 from app.api.routes.events import BeliefEvent
 from app.belief import fusion
 from app.belief.grid import VoxelGrid
@@ -193,3 +196,40 @@ def test_the_utterance_history_on_redis(redis_url: str) -> None:
         mass = top_down(client.get(f"/v1/sessions/{sid}/belief/topdown").json())
         assert np.isclose(float(mass.sum(dtype=np.float64)), 1.0)
     store.close()
+
+
+class _Assets(HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.urls: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        for name, value in attrs:
+            if name in ("src", "href") and value is not None:
+                self.urls.append(value)
+
+
+def test_the_page_and_its_assets_are_served_without_a_key_and_load_nothing_else(keyed: TestClient) -> None:
+    page = keyed.get("/dashboard")
+    assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+    policy = page.headers["content-security-policy"]
+    assert "default-src 'none'" in policy and "connect-src 'self'" in policy and "script-src 'self'" in policy
+    parser = _Assets()
+    parser.feed(page.text)
+    assert len(parser.urls) == 3, parser.urls  # the icon, the stylesheet, the script
+    for url in parser.urls:
+        assert not url.startswith(("/", "http:", "https:")), url  # relative: behind a proxy's prefix too
+        assert keyed.get(f"/{url}").status_code == 200, url
+    for name, kind in (("dashboard.js", "text/javascript"), ("dashboard.css", "text/css")):
+        asset = keyed.get(f"/dashboard/{name}")
+        assert asset.headers["content-type"].startswith(kind)
+        assert asset.content == (DASHBOARD_DIR / name).read_bytes()
+        assert "http:" not in asset.text and "https:" not in asset.text  # nothing from the web
+    assert keyed.get("/dashboard/index.html").status_code == 404
+    assert keyed.get("/dashboard/../app.py").status_code == 404
+    assert keyed.get("/v1/sessions").status_code == 401  # the API still wants the key
+
+
+def test_the_page_is_not_in_the_api_contract(keyed: TestClient) -> None:
+    paths = keyed.get("/openapi.json").json()["paths"]
+    assert not [path for path in paths if path.startswith("/dashboard")]

@@ -21,7 +21,17 @@ from app.api.errors import install_error_handlers
 from app.api.examples import add_request_examples
 from app.api.limits import BodySizeLimitMiddleware
 from app.api.observability import Metrics, RequestContextMiddleware
-from app.api.routes import events, ground, health, metrics, models, recordings, scene_graphs, sessions
+from app.api.routes import (
+    dashboard,
+    events,
+    ground,
+    health,
+    metrics,
+    models,
+    recordings,
+    scene_graphs,
+    sessions,
+)
 from app.api.schemas import (
     GroundRequest,
     ObservationBatchJson,
@@ -158,7 +168,7 @@ def create_app(
     app.openapi = lambda: openapi_with_raw_bodies(app)  # type: ignore[method-assign]
     install_error_handlers(app)
     install_docs(app)
-    for module in (health, models, metrics, ground, scene_graphs, sessions, events, recordings):
+    for module in (health, models, metrics, ground, scene_graphs, sessions, events, recordings, dashboard):
         app.include_router(module.router)
     app.add_middleware(FormAsJsonMiddleware)
     app.add_middleware(
