@@ -20,6 +20,7 @@ _COMMAND_MODULES = {
     "fit-proposer": "app.training.referents",
     "sim": "app.sim.cli",
     "eval": "app.evaluation.cli",
+    "hydra-bridge": "app.hydra_bridge",
     "foxglove": "app.foxglove.cli",
     "record": "app.foxglove.cli",
 }

@@ -36,6 +36,7 @@ import time
 import uuid
 from collections.abc import AsyncIterator, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -332,6 +333,15 @@ def _stream_timeout(timeout: httpx.Timeout, follow: _Follow) -> httpx.Timeout:
 
 def _headers(api_key: str | None) -> dict[str, str]:
     return {"Authorization": f"Bearer {api_key}"} if api_key else {}
+
+
+def read_api_key(path: Path) -> str:
+    """The API key in a file (its first line), for an `--api-key-file`."""
+    text = path.read_text(encoding="utf-8").strip()
+    if not text:
+        msg = f"{path} holds no API key"
+        raise ValueError(msg)
+    return text.splitlines()[0].strip()
 
 
 class VLMapClient:

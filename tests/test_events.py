@@ -62,15 +62,16 @@ class Served:
 
 @contextlib.contextmanager
 def served(
-    settings: Settings, store: SessionStore | None = None, sndbuf: int | None = None
+    settings: Settings, store: SessionStore | None = None, sndbuf: int | None = None, port: int = 0
 ) -> Iterator[Served]:
-    """The service under uvicorn on a loopback port, in a thread; `sndbuf`: its sockets' send buffer (bytes,
-    fixed: no autotuning), a slow network's."""
+    """The service under uvicorn on a loopback port (a free one unless given: a restart on the same port),
+    in a thread; `sndbuf`: its sockets' send buffer (bytes, fixed: no autotuning), a slow network's."""
     app = create_app(settings, store=store)
     sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # the port again while old connections linger
     if sndbuf is not None:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, sndbuf)  # accepted connections inherit it
-    sock.bind(("127.0.0.1", 0))
+    sock.bind(("127.0.0.1", port))
     config = uvicorn.Config(
         app,
         log_config=None,

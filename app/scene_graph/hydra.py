@@ -180,7 +180,7 @@ def decode_spark_dsg_binary(payload: bytes, *, timeout_s: float = BINARY_DECODE_
     """The graph in `payload` as Spark-DSG JSON, decoded by spark_dsg in a child process whose address
     space is capped (1 GiB + 64 bytes per payload byte beyond its start-up use) and which is killed after
     `timeout_s`; every way that can fail raises InvalidSceneGraph."""
-    _check_binary_prefix(payload)
+    check_binary_prefix(payload)
     allowance = BINARY_DECODE_BASE_MEMORY + BINARY_DECODE_MEMORY_PER_BYTE * len(payload)
     # One BLAS thread is plenty for decoding and keeps the child's start-up footprint small.
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -232,7 +232,7 @@ def decode_spark_dsg_binary(payload: bytes, *, timeout_s: float = BINARY_DECODE_
         raise InvalidSceneGraph(msg) from exc
 
 
-def _check_binary_prefix(payload: bytes) -> None:
+def check_binary_prefix(payload: bytes) -> None:
     """Cheap structural check of the opening array, so that arbitrary bytes never start a decoder.
     It is not the safety net (the child process is): deeper fields are only checked by spark_dsg."""
     if payload.startswith(SPARK_DSG_FILE_MAGIC):
