@@ -11,10 +11,10 @@ from typing import Any
 
 
 def _api_key(path: str | None) -> str | None:
-    """The API key in the file (its first line), if one was named."""
-    if path is None:
-        return None
-    return Path(path).read_text(encoding="utf-8").strip().splitlines()[0]
+    """The API key in the file, if one was named."""
+    from app.client import read_api_key
+
+    return None if path is None else read_api_key(Path(path))
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
