@@ -43,7 +43,7 @@ import httpx
 import msgpack
 import numpy as np
 
-from app.api.wire import encode_msgpack_batch
+from app.sessions.batch import encode_msgpack_batch
 
 
 class VLMapHTTPError(Exception):

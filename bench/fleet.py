@@ -40,8 +40,8 @@ from typing import Any
 import httpx
 import numpy as np
 
-from app.api.wire import encode_msgpack_batch
 from app.client import VLMapClient
+from app.sessions.batch import encode_msgpack_batch
 from app.sim.service import start_service, wait_ready
 from tests.harness import RedisServer
 

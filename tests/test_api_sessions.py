@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.api.wire import encode_msgpack_batch, pack_array
+from app.sessions.batch import encode_msgpack_batch
+from app.stores.base import pack_array
 from tests.conftest import load_resource_json
 
 

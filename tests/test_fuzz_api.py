@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from app.api.app import create_app
-from app.api.wire import encode_msgpack_batch
+from app.sessions.batch import encode_msgpack_batch
 from app.settings import Settings
 from tests.conftest import load_resource_json
 

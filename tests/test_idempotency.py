@@ -17,8 +17,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.api.app import create_app
-from app.api.wire import encode_msgpack_batch
 from app.errors import AlreadyApplied
+from app.sessions.batch import encode_msgpack_batch
 from app.stores import MemorySessionStore
 from app.stores.base import Idempotency, IdempotencyLog, IdempotencyRecord
 from tests.conftest import load_resource_json, model_free_settings

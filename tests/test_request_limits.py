@@ -19,11 +19,11 @@ from fastapi.testclient import TestClient
 
 from app.api.app import create_app
 from app.api.observability import CLIENT_CLOSED_REQUEST
-from app.api.wire import pack_array
 from app.belief.grid import VoxelGrid
 from app.belief.session import LabelNames, ObservationModel, SensorModel
 from app.belief.summary import _INDEXED_VOXELS, cached_place_index, summarize
 from app.scene_graph.model import SceneGraph
+from app.stores.base import pack_array
 from tests.conftest import load_resource_json, model_free_settings
 
 MSGPACK = {"content-type": "application/msgpack"}

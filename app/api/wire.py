@@ -33,7 +33,6 @@ from app.api.schemas import MAX_LABEL_CHARS, ObservationBatchJson
 from app.belief.session import LabelNames, Session
 from app.errors import InvalidInput, LimitExceeded, UnsupportedMediaType
 from app.sessions.batch import ObservationBatch
-from app.stores.base import pack_array  # the one {dtype, shape, data} codec, the stores' too
 
 #: Runs a function on a worker thread: `run(func, *args)`.
 Runner = Callable[..., Awaitable[Any]]
@@ -168,35 +167,6 @@ def check_batch_size(n: int, max_voxels: int) -> None:
     if n > max_voxels:
         msg = f"a batch may carry at most {max_voxels} voxels, got {n}"
         raise LimitExceeded(msg, limit_name="max_batch_voxels")
-
-
-def encode_msgpack_batch(
-    *,
-    voxels: np.ndarray | None = None,
-    points: np.ndarray | None = None,
-    labels: np.ndarray | list[str] | None = None,
-    p_target: np.ndarray | None = None,
-    stamp: float | None = None,
-    tp: float | None = None,
-    fp: float | None = None,
-) -> bytes:
-    """The msgpack body for a batch: int32 voxels or float32 points, uint32 ids or names, float32 p_target."""
-    envelope: dict[str, Any] = {"stamp": stamp}
-    if voxels is not None:
-        envelope["voxels"] = pack_array(np.asarray(voxels, dtype=np.int32).reshape(-1, 3))
-    if points is not None:
-        envelope["points"] = pack_array(np.asarray(points, dtype=np.float32).reshape(-1, 3))
-    if labels is not None:
-        arr = np.asarray(labels)
-        envelope["labels"] = (
-            [str(x) for x in arr] if arr.dtype.kind in "US" else pack_array(arr.astype(np.uint32))
-        )
-    if p_target is not None:
-        envelope["p_target"] = pack_array(np.asarray(p_target, dtype=np.float32))
-    if tp is not None or fp is not None:
-        envelope["sensor_model"] = {k: v for k, v in (("tp", tp), ("fp", fp)) if v is not None}
-    packed: bytes = msgpack.packb(envelope, use_bin_type=True)
-    return packed
 
 
 #: Voxels per chunk of the grid encoder's passes and of the stream it writes (1 MiB of float32).

@@ -1,13 +1,17 @@
-"""One observation batch as the robot sent it, decoded (JSON or msgpack alike: `app.api.wire`)."""
+"""One observation batch as the robot sent it, decoded (JSON or msgpack alike: `app.api.wire`), and the
+msgpack body a client sends for one (`encode_msgpack_batch`, the encoder of `app.api.wire`'s format)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
+import msgpack
 import numpy as np
 
 from app.belief.session import LabelNames
 from app.errors import InvalidInput
+from app.stores.base import pack_array
 
 
 @dataclass(frozen=True)
@@ -51,3 +55,32 @@ class ObservationBatch:
 
     def __len__(self) -> int:
         return len(self.voxels if self.voxels is not None else self.points)  # type: ignore[arg-type]
+
+
+def encode_msgpack_batch(
+    *,
+    voxels: np.ndarray | None = None,
+    points: np.ndarray | None = None,
+    labels: np.ndarray | list[str] | None = None,
+    p_target: np.ndarray | None = None,
+    stamp: float | None = None,
+    tp: float | None = None,
+    fp: float | None = None,
+) -> bytes:
+    """The msgpack body for a batch: int32 voxels or float32 points, uint32 ids or names, float32 p_target."""
+    envelope: dict[str, Any] = {"stamp": stamp}
+    if voxels is not None:
+        envelope["voxels"] = pack_array(np.asarray(voxels, dtype=np.int32).reshape(-1, 3))
+    if points is not None:
+        envelope["points"] = pack_array(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+    if labels is not None:
+        arr = np.asarray(labels)
+        envelope["labels"] = (
+            [str(x) for x in arr] if arr.dtype.kind in "US" else pack_array(arr.astype(np.uint32))
+        )
+    if p_target is not None:
+        envelope["p_target"] = pack_array(np.asarray(p_target, dtype=np.float32))
+    if tp is not None or fp is not None:
+        envelope["sensor_model"] = {k: v for k, v in (("tp", tp), ("fp", fp)) if v is not None}
+    packed: bytes = msgpack.packb(envelope, use_bin_type=True)
+    return packed
