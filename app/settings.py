@@ -13,7 +13,7 @@ from app.belief.grid import DEFAULT_MAX_VOXELS
 from app.scene_graph.model import MAX_OBJECTS_CEILING, MAX_REGIONS_CEILING
 from app.stores.base import DEFAULT_IDEMPOTENCY_KEYS, DEFAULT_IDEMPOTENCY_WINDOW_S, DEFAULT_TTL_S
 from app.stores.events import DEFAULT_HISTORY as DEFAULT_EVENT_HISTORY
-from app.stores.recording import DEFAULT_RECORDING_FRAMES
+from app.stores.recording import DEFAULT_RECORDING_FRAMES, DEFAULT_RECORDING_INTERVAL_S
 from app.stores.redis_store import DEFAULT_MIRROR_BYTES
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -109,6 +109,13 @@ class Settings(BaseSettings):
         description="Frames each session's recording keeps (`GET .../recording.mcap`): one per belief "
         "version, about 6 kB each (the summary and its 100 top voxels), older ones thinned to every second "
         "past the limit (app.sessions.recording); 0: no recording, and no cost per update.",
+    )
+    recording_interval_s: float = Field(
+        default=DEFAULT_RECORDING_INTERVAL_S,
+        ge=0,
+        description="A batch sent with summary=false is recorded off the request path, at most one frame per "
+        "session this often: the latest version when it is due, so a robot streaming at camera rate costs "
+        "one summary a second, not one per batch (0: a frame per version).",
     )
     events_heartbeat_s: float = Field(
         default=10.0,

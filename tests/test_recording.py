@@ -5,8 +5,9 @@ the log on the memory store and on a real Redis."""
 from __future__ import annotations
 
 import io
+import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -190,3 +191,40 @@ def test_the_preview_draws_the_last_frame(served: TestClient, tmp_path: Path) ->
     recording.write_bytes(served.get(f"/v1/sessions/{sid}/recording.mcap").content)
     render_png(recording, tmp_path / "r.png")
     assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def batch_frames(client: TestClient, sid: str) -> list[int]:
+    frames = client.get(f"/v1/sessions/{sid}/recording").json()["frames"]
+    return [f["version"] for f in frames if f["cause"]["kind"] == "observations"]
+
+
+def streamed_session(client: TestClient, batches: int) -> str:
+    """A session sent `batches` observation batches without a summary (the fleet's path): versions 1..n."""
+    body = {"robot_id": "r1", "scene_graph": SCENE, "target_label": "backpack", "label_map": LABELS}
+    sid = str(client.post("/v1/sessions", json=body).json()["id"])
+    for k in range(batches):
+        batch = {"voxels": [[k, 1, 1]], "labels": [1]}
+        assert client.post(f"/v1/sessions/{sid}/observations?summary=false", json=batch).status_code == 200
+    return sid
+
+
+def eventually(check: Callable[[], bool], what: str, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        assert time.monotonic() < deadline, f"never: {what}"
+        time.sleep(0.05)
+
+
+def test_batches_without_a_summary_share_one_frame_per_interval() -> None:
+    with TestClient(create_app(model_free_settings(recording_interval_s=3600))) as client:
+        sid = streamed_session(client, 6)
+        eventually(lambda: len(batch_frames(client, sid)) > 0, "the first batch's frame")
+        # The first batch is recorded at once; the five after it wait for the next frame, an hour away.
+        assert len(batch_frames(client, sid)) == 1
+
+
+def test_the_frame_that_falls_due_records_the_latest_version() -> None:
+    with TestClient(create_app(model_free_settings(recording_interval_s=0.2))) as client:
+        sid = streamed_session(client, 6)
+        eventually(lambda: batch_frames(client, sid)[-1:] == [6], "a frame of the last version")
+        assert batch_frames(client, sid) == sorted(set(batch_frames(client, sid)))

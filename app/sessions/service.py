@@ -153,6 +153,9 @@ class SessionService:
         self.summaries = SummaryCache(watch_s=settings.summary_watch_s)
         self._top_downs: OrderedDict[str, TopDown] = OrderedDict()
         self._ahead: set[asyncio.Task[None]] = set()
+        self._recording_due: dict[str, Mapping[str, Any]] = {}  # session -> its unrecorded batch cause
+        self._recorded_at: OrderedDict[str, float] = OrderedDict()  # session -> its last batch frame's time
+        self._recording_timers: dict[str, asyncio.TimerHandle] = {}
         store.events.history = settings.events_history
         self.events = EventHub(
             store.events,
@@ -391,7 +394,7 @@ class SessionService:
             belief = await self.belief(caller, session_id)
         else:
             if not replayed:
-                self._in_background(self._record(session_id, cause(result) | {"stamp": stamp}))
+                self._record_soon(session_id, cause(result) | {"stamp": stamp})
             self._summarise_ahead(session_id)
         return Applied((result, belief), replayed=replayed)
 
@@ -486,6 +489,35 @@ class SessionService:
             await self.store.record(session_id, frame.pack(), limit)
         except VLMapError as exc:
             log.warning("recording of %s skipped a version: %s", session_id, exc)
+
+    def _record_soon(self, session_id: str, cause: Mapping[str, Any]) -> None:
+        """Record the session's latest version off the request path, at most once per `recording_interval_s`:
+        batches that arrive meanwhile share the frame that follows them (its cause is the last one's)."""
+        if self.settings.recording_frames <= 0:
+            return
+        pending = session_id in self._recording_due
+        self._recording_due[session_id] = cause
+        if pending:
+            return
+        last = self._recorded_at.get(session_id)
+        wait = 0.0 if last is None else last + self.settings.recording_interval_s - time.monotonic()
+        if wait <= 0:
+            self._record_due(session_id)
+        else:  # a timer, not a sleeping task, so that closing has nothing to wait for
+            self._recording_timers[session_id] = asyncio.get_running_loop().call_later(
+                wait, self._record_due, session_id
+            )
+
+    def _record_due(self, session_id: str) -> None:
+        self._recording_timers.pop(session_id, None)
+        cause = self._recording_due.pop(session_id)
+        now = time.monotonic()
+        self._recorded_at[session_id] = now
+        self._recorded_at.move_to_end(session_id)
+        # Only sessions recorded within the interval need remembering: the others may be recorded at once.
+        while next(iter(self._recorded_at.values())) < now - self.settings.recording_interval_s:
+            self._recorded_at.popitem(last=False)
+        self._in_background(self._record(session_id, cause))
 
     async def recording(self, caller: Caller, session_id: str, after: int | None = None) -> list[Frame]:
         """The session's recorded frames, one per version, oldest first: those after version `after`, if
@@ -600,7 +632,9 @@ class SessionService:
         return EventStream(sub, first, resync=resync)
 
     async def close(self) -> None:
-        """Stop summarising ahead (a job running now is cancelled) and end the event streams."""
+        """Stop summarising and recording ahead (a job running now is cancelled) and end the event streams."""
+        for timer in self._recording_timers.values():
+            timer.cancel()
         for task in list(self._ahead):
             task.cancel()
         await asyncio.gather(*self._ahead, return_exceptions=True)

@@ -6,6 +6,9 @@ from collections.abc import Sequence
 
 #: Default frames a session's recording keeps (`Settings.recording_frames`).
 DEFAULT_RECORDING_FRAMES = 256
+#: Default seconds between a session's frames of batches sent without a summary
+#: (`Settings.recording_interval_s`).
+DEFAULT_RECORDING_INTERVAL_S = 1.0
 #: First byte of a stored frame: kept by `thin` (utterances, the first frame), or not.
 KEEP, THIN = b"k", b"s"
 
