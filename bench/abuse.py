@@ -32,16 +32,13 @@ import httpx
 import msgpack
 import numpy as np
 
-from app.sim.service import start_service, wait_ready
+from app.sim.service import MODEL_FREE_ENV, start_service, wait_ready
 
 RESOURCES = Path(__file__).resolve().parent.parent / "tests" / "resources"
 #: A service on the model-free parts, no rate limit, and grids small enough that a session's layers (state,
 #: not amplification) stay a few MiB: what the run measures is the work hostile requests cause.
 SERVICE_ENV = {
-    "VLMAP_GROUNDER": "geometric",
-    "VLMAP_GROUNDERS": '["geometric"]',
-    "VLMAP_PROPOSER": "lexical",
-    "VLMAP_WORKER_PROCESSES": "0",
+    **MODEL_FREE_ENV,
     "VLMAP_DATA_DIR": "",
     "VLMAP_RATE_LIMIT_PER_S": "0",
     "VLMAP_MAX_GRID_VOXELS": "2000000",

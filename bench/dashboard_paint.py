@@ -20,7 +20,6 @@ import json
 import os
 import shutil
 import statistics
-import subprocess
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -32,7 +31,7 @@ from app.api.auth import digest, new_key
 from app.belief.grid import VoxelGrid
 from app.client import VLMapClient
 from app.scene_graph.model import SceneGraph
-from app.sim.service import start_service, wait_ready
+from app.sim.service import MODEL_FREE_ENV, running_service
 
 if TYPE_CHECKING:
     from selenium.webdriver.chrome.webdriver import WebDriver
@@ -41,10 +40,7 @@ SCENES = Path(__file__).resolve().parent.parent / "tests" / "resources" / "scene
 SCENE = SCENES / "scannet_scene0590_00.json"
 #: The grounding and store settings of a quick service: no model to load, nothing written to disk.
 QUICK_SERVICE = {
-    "VLMAP_GROUNDER": "geometric",
-    "VLMAP_GROUNDERS": '["geometric"]',
-    "VLMAP_PROPOSER": "lexical",
-    "VLMAP_WORKER_PROCESSES": "0",
+    **MODEL_FREE_ENV,
     "VLMAP_DATA_DIR": "",
     "VLMAP_RATE_LIMIT_PER_S": "0",
 }
@@ -112,15 +108,6 @@ def service_keys() -> tuple[dict[str, str], str, str]:
     return {"VLMAP_API_KEYS": json.dumps(records)}, viewer, robot
 
 
-def stop(proc: subprocess.Popen[bytes]) -> None:
-    proc.terminate()
-    try:
-        proc.wait(timeout=30)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-
-
 def million_voxel_grid(scene: dict[str, Any], target: int = 1_000_000) -> dict[str, float]:
     """The grid spec (voxel size, default margin) whose grid around the scene is closest to `target` voxels,
     sizes in whole millimetres."""
@@ -184,49 +171,47 @@ def main() -> None:
         raise SystemExit(msg)
     scene = json.loads(SCENE.read_text(encoding="utf-8"))
     env, viewer, robot = service_keys()
-    proc, url = start_service({**QUICK_SERVICE, **env})
     driver = None
-    try:
-        wait_ready(url, proc)
-        client = VLMapClient(url, api_key=robot, timeout_s=120.0)
-        grid = million_voxel_grid(scene, args.voxels)
-        session = client.create_session("robot-7", scene, target_label="keys", grid=grid)
-        sid = session["id"]
-        client.send_utterance(sid, "I left my keys on the nightstand")
-        rng = np.random.default_rng(0)
-        shape = session["grid"]["shape"]
-        driver = headless_chromium(*paths)
-        driver.get(f"{url}/dashboard")
-        driver.execute_script(f"sessionStorage.setItem('{KEY_ENTRY}', arguments[0])", viewer)
-        runs = []
-        for _ in range(args.runs):
-            voxels = rng.integers(0, shape, size=(2000, 3))
-            client.send_observations(sid, voxels=voxels, labels=["floor"] * len(voxels))
-            runs.append(first_paint(driver, url, sid, timeout_s=120.0))
-        if args.screenshot is not None:
-            screenshot(driver, client, sid, args.screenshot)
-        topdown = httpx.get(
-            f"{url}/v1/sessions/{sid}/belief/topdown",
-            headers={"Authorization": f"Bearer {viewer}"},
-            timeout=60,
-        )
-        report = {
-            "voxels": session["grid"]["n_voxels"],
-            "grid_shape": shape,
-            "voxel_size_m": grid["voxel_size"],
-            "topdown_bytes": len(topdown.content),
-            "cpus": os.cpu_count(),
-            "runs": args.runs,
-            "heatmap_ms": spread([r["heatmap_ms"] for r in runs]),
-            "first_contentful_paint_ms": spread([r["first-contentful-paint_ms"] for r in runs]),
-            "each_heatmap_ms": [round(r["heatmap_ms"], 1) for r in runs],
-            "when": time.strftime("%Y-%m-%d %H:%M:%S"),
-        }
-        print(json.dumps(report, indent=2))
-    finally:
-        if driver is not None:
-            driver.quit()
-        stop(proc)
+    with running_service({**QUICK_SERVICE, **env}) as url:
+        try:
+            client = VLMapClient(url, api_key=robot, timeout_s=120.0)
+            grid = million_voxel_grid(scene, args.voxels)
+            session = client.create_session("robot-7", scene, target_label="keys", grid=grid)
+            sid = session["id"]
+            client.send_utterance(sid, "I left my keys on the nightstand")
+            rng = np.random.default_rng(0)
+            shape = session["grid"]["shape"]
+            driver = headless_chromium(*paths)
+            driver.get(f"{url}/dashboard")
+            driver.execute_script(f"sessionStorage.setItem('{KEY_ENTRY}', arguments[0])", viewer)
+            runs = []
+            for _ in range(args.runs):
+                voxels = rng.integers(0, shape, size=(2000, 3))
+                client.send_observations(sid, voxels=voxels, labels=["floor"] * len(voxels))
+                runs.append(first_paint(driver, url, sid, timeout_s=120.0))
+            if args.screenshot is not None:
+                screenshot(driver, client, sid, args.screenshot)
+            topdown = httpx.get(
+                f"{url}/v1/sessions/{sid}/belief/topdown",
+                headers={"Authorization": f"Bearer {viewer}"},
+                timeout=60,
+            )
+            report = {
+                "voxels": session["grid"]["n_voxels"],
+                "grid_shape": shape,
+                "voxel_size_m": grid["voxel_size"],
+                "topdown_bytes": len(topdown.content),
+                "cpus": os.cpu_count(),
+                "runs": args.runs,
+                "heatmap_ms": spread([r["heatmap_ms"] for r in runs]),
+                "first_contentful_paint_ms": spread([r["first-contentful-paint_ms"] for r in runs]),
+                "each_heatmap_ms": [round(r["heatmap_ms"], 1) for r in runs],
+                "when": time.strftime("%Y-%m-%d %H:%M:%S"),
+            }
+            print(json.dumps(report, indent=2))
+        finally:
+            if driver is not None:
+                driver.quit()
 
 
 if __name__ == "__main__":

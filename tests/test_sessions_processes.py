@@ -20,7 +20,7 @@ import pytest
 
 from app.belief.fusion import vision_increments
 from app.client import VLMapClient
-from app.sim.service import running_service, start_service, wait_ready
+from app.sim.service import MODEL_FREE_ENV, running_service, start_service, wait_ready
 from tests.conftest import load_resource_json
 
 TP, FP = 0.9, 0.05
@@ -157,15 +157,6 @@ def test_kill_9_mid_stream_loses_no_acknowledged_batch(
     np.testing.assert_array_equal(grid.vis, sequential_sum(shape, batches[: grid.version]))
 
 
-#: The model-free parts: a replica killed mid-stream restarts in seconds.
-MODEL_FREE = {
-    "VLMAP_GROUNDER": "geometric",
-    "VLMAP_GROUNDERS": '["geometric"]',
-    "VLMAP_PROPOSER": "lexical",
-    "VLMAP_WORKER_PROCESSES": "0",
-}
-
-
 def retried_stream(
     url: str, session_id: str, batches: list[tuple[np.ndarray, np.ndarray]], timeout_s: float, wait_for: int
 ) -> tuple[threading.Thread, list[int]]:
@@ -213,11 +204,11 @@ def stream_through_a_kill(env: dict[str, str], scene: dict[str, Any], seed: int)
 
 
 def test_a_kill_9_mid_stream_with_retries_applies_every_batch_once(scene: dict, tmp_path: Path) -> None:
-    stream_through_a_kill({**MODEL_FREE, "VLMAP_DATA_DIR": str(tmp_path / "sessions")}, scene, seed=3)
+    stream_through_a_kill({**MODEL_FREE_ENV, "VLMAP_DATA_DIR": str(tmp_path / "sessions")}, scene, seed=3)
 
 
 @pytest.mark.redis
 def test_a_redis_replica_killed_mid_stream_with_retries_applies_every_batch_once(
     scene: dict, redis_url: str
 ) -> None:
-    stream_through_a_kill({**MODEL_FREE, "VLMAP_STORE": redis_url}, scene, seed=4)
+    stream_through_a_kill({**MODEL_FREE_ENV, "VLMAP_STORE": redis_url}, scene, seed=4)

@@ -92,6 +92,16 @@ def wait_ready(
     raise RuntimeError(msg)
 
 
+#: The settings of a service on the model-free parts (geometric grounder, lexical proposer, no worker
+#: process): ready in seconds, for what measures the service rather than the models.
+MODEL_FREE_ENV = {
+    "VLMAP_GROUNDER": "geometric",
+    "VLMAP_GROUNDERS": '["geometric"]',
+    "VLMAP_PROPOSER": "lexical",
+    "VLMAP_WORKER_PROCESSES": "0",
+}
+
+
 @contextmanager
 def running_service(env: dict[str, str] | None = None, timeout_s: float = MAX_START_S) -> Iterator[str]:
     """Yield the base URL of a ready `vlmap serve` process; stop it afterwards."""
