@@ -26,14 +26,13 @@ import pytest
 from PIL import Image, ImageStat
 
 from app.client import VLMapClient
-from app.sim.service import start_service, wait_ready
+from app.sim.service import running_service
 from bench.dashboard_paint import (
     QUICK_SERVICE,
     browser_paths,
     headless_chromium,
     requested_urls,
     service_keys,
-    stop,
 )
 
 if TYPE_CHECKING:
@@ -69,12 +68,8 @@ def browser() -> Iterator[WebDriver]:
 def service() -> Iterator[tuple[str, str, str]]:
     """(base URL, viewer key, key of robot "robot-7") of a model-free `vlmap serve` on loopback."""
     env, viewer, robot = service_keys()
-    proc, url = start_service({**QUICK_SERVICE, **env})
-    try:
-        wait_ready(url, proc)
+    with running_service({**QUICK_SERVICE, **env}) as url:
         yield url, viewer, robot
-    finally:
-        stop(proc)
 
 
 def wait(driver: WebDriver, condition: Any, timeout_s: float = PATIENCE_S) -> Any:

@@ -33,10 +33,9 @@ from app.api.server import guarded_protocol
 from app.client import StreamEvent, VLMapClient, VLMapHTTPError
 from app.sessions.events import EventHub
 from app.settings import Settings
-from app.sim.service import start_service, wait_ready
+from app.sim.service import MODEL_FREE_ENV, start_service, wait_ready
 from app.stores.base import SessionStore
 from tests.conftest import load_resource_json, model_free_settings
-from tests.test_sessions_processes import MODEL_FREE
 
 SCENE = load_resource_json("scenes/two_rooms.json")
 LABELS = {"0": "chair", "1": "backpack"}
@@ -398,7 +397,7 @@ def eventually(condition: Callable[[], bool], what: str) -> None:
 @pytest.fixture
 def replicas(redis_url: str) -> Iterator[tuple[str, str]]:
     """Two `vlmap serve` processes on one Redis."""
-    env = {**MODEL_FREE, "VLMAP_STORE": redis_url, "VLMAP_DATA_DIR": ""}
+    env = {**MODEL_FREE_ENV, "VLMAP_STORE": redis_url, "VLMAP_DATA_DIR": ""}
     started = [start_service(env), start_service(env)]
     try:
         for proc, url in started:
@@ -522,7 +521,7 @@ def test_on_a_redis_cluster_every_version_reaches_the_stream(redis_cluster_url: 
 def test_a_replica_told_to_stop_ends_its_streams_at_once() -> None:
     """uvicorn stops gracefully by waiting for the answers in progress: without the router's signal hook, a
     stream would hold a SIGTERMed `vlmap serve` for `events_max_stream_s` (10 minutes here)."""
-    proc, url = start_service({**MODEL_FREE, "VLMAP_DATA_DIR": "", "VLMAP_EVENTS_MAX_STREAM_S": "600"})
+    proc, url = start_service({**MODEL_FREE_ENV, "VLMAP_DATA_DIR": "", "VLMAP_EVENTS_MAX_STREAM_S": "600"})
     try:
         wait_ready(url, proc)
         fleet = Reader(lambda: VLMapClient(url).fleet_events(reconnect=False))

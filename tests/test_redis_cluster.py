@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from app.client import VLMapClient
-from app.sim.service import start_service, wait_ready
+from app.sim.service import MODEL_FREE_ENV, start_service, wait_ready
 from tests.conftest import load_resource_json
-from tests.test_sessions_processes import MODEL_FREE, create, make_batches, retried_stream, sequential_sum
+from tests.test_sessions_processes import create, make_batches, retried_stream, sequential_sum
 from tests.test_stores import make_session, redis_store
 
 pytestmark = pytest.mark.redis
@@ -64,7 +64,7 @@ def test_a_failover_of_the_master_holding_a_session_mid_stream_applies_every_bat
     redis_cluster_url: str,
 ) -> None:
     scene = load_resource_json("scenes/two_rooms.json")
-    proc, url = start_service({**MODEL_FREE, "VLMAP_STORE": redis_cluster_url})
+    proc, url = start_service({**MODEL_FREE_ENV, "VLMAP_STORE": redis_cluster_url})
     probe = redis_store(redis_cluster_url)
     try:
         wait_ready(url, proc)
