@@ -254,8 +254,9 @@ class Settings(BaseSettings):
     )
     text_encoder_precision: Literal["auto", "float32", "bfloat16"] = Field(
         default="auto",
-        description="MiniLM projections in bfloat16 where the CPU has AMX and the probe embedding agrees "
-        "with float32 (auto), always float32, or bfloat16 (an error without AMX).",
+        description="MiniLM projections in bfloat16 where the CPU has native bfloat16 instructions (AMX or "
+        "AVX512-BF16) and the probe embedding agrees with float32 (auto), always float32, or bfloat16 (an "
+        "error without them).",
     )
     worker_threads: int = Field(default=8, ge=1, description="Threads for CPU-bound work off the event loop.")
     worker_processes: int = Field(

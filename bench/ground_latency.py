@@ -2,8 +2,11 @@
 
 Scenes: ScanNet scene0590_00 (60 objects) and a 150-object map made of three real ScanNet rooms side by
 side (the built-in proposer's target is under 20 ms on 150 objects). Sequential requests from one client
-after a warm-up; every utterance is sent many times, so the proposer's phrase embeddings are warm after
-the first round (label embeddings are cached per object label, as in service).
+after a warm-up. Two series per scene and grounder: "repeated" sends five utterances over and over, so
+every text embedding is warm after the first round (label embeddings are cached per object label, as in
+service); "new" sends an utterance never sent before in every request, about a target name never asked
+for before ("I left the kettle on the table"), so the proposer's phrases and the LSM's hypothesis texts go
+through the text encoder in that request.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import httpx
 import numpy as np
 
 from app.sim.service import running_service
+from app.vocabulary import object_nouns
 
 SCENES = Path(__file__).resolve().parent.parent / "tests" / "resources" / "scenes"
 UTTERANCES = [
@@ -62,16 +66,39 @@ def map_of_150() -> dict[str, Any]:
     return scene
 
 
+#: Anchors of the new utterances, all in both scenes; the target name is what is new.
+NEW_TEMPLATES = ["I left the {} on the table", "the {} is next to the lamp", "my {} is under the desk"]
+
+
+class NewUtterances:
+    """Utterances never sent before, each about a target name not used by any earlier one."""
+
+    def __init__(self) -> None:
+        skip = {word for text in UTTERANCES for word in text.split()}
+        self._names = iter(sorted(n for n in object_nouns() if n not in skip))
+        self._count = 0
+
+    def __next__(self) -> str:
+        self._count += 1
+        return NEW_TEMPLATES[self._count % len(NEW_TEMPLATES)].format(next(self._names))
+
+
 def measure(
-    client: httpx.Client, scene: dict[str, Any], grounder: str, n: int, warmup: int
+    client: httpx.Client,
+    scene: dict[str, Any],
+    grounder: str,
+    n: int,
+    warmup: int,
+    new: NewUtterances | None = None,
 ) -> dict[str, Any]:
+    """Latency percentiles of `n` requests after `warmup`; with `new`, every measured request's utterance
+    comes from it (the warm-up's repeat `UTTERANCES`)."""
     total, proposer, grounding = [], [], []
     for i in range(warmup + n):
-        body = {
-            "scene_graph": scene,
-            "utterance": UTTERANCES[i % len(UTTERANCES)],
-            "options": {"grounder": grounder},
-        }
+        utterance = UTTERANCES[i % len(UTTERANCES)]
+        if new is not None and i >= warmup:
+            utterance = next(new)
+        body = {"scene_graph": scene, "utterance": utterance, "options": {"grounder": grounder}}
         start = time.perf_counter()
         response = client.post("/v1/ground", json=body)
         elapsed = (time.perf_counter() - start) * 1000.0
@@ -93,7 +120,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--requests", type=int, default=500)
     parser.add_argument("--warmup", type=int, default=50)
+    parser.add_argument(
+        "--new-requests", type=int, default=100, help="requests per row of the new-utterance series"
+    )
     args = parser.parse_args()
+    new = NewUtterances()
+    if 4 * args.new_requests > len(object_nouns()):  # 2 scenes x 2 grounders, each name used once
+        parser.error(f"--new-requests over {len(object_nouns()) // 4}: not enough target names")
     scenes = {
         "60-object room (scene0590_00)": load("scannet_scene0590_00.json"),
         "150-object map": map_of_150(),
@@ -106,21 +139,25 @@ def main() -> None:
         grounders = [m["name"] for m in models if m["role"] == "grounder" and m["name"] != "fixed"]
         proposer = next(m["name"] for m in models if m["role"] == "proposer")
         print(
-            f"POST /v1/ground over loopback, sequential, proposer={proposer}; {args.requests} requests each"
+            f"POST /v1/ground over loopback, sequential, proposer={proposer}; {args.requests} requests per "
+            f"repeated row, {args.new_requests} per new-utterance row"
         )
         print(
             f"machine: {platform.machine()}, {os.cpu_count()} CPUs, CPython {platform.python_version()}, "
             f"1-min load before: {os.getloadavg()[0]:.1f}"
         )
-        print("| scene | grounder | p50 (ms) | p99 (ms) | proposer p50 (ms) | grounder p50 (ms) |")
-        print("|---|---|---|---|---|---|")
+        print(
+            "| scene | grounder | utterances | p50 (ms) | p99 (ms) | proposer p50 (ms) | grounder p50 (ms) |"
+        )
+        print("|---|---|---|---|---|---|---|")
         for label, scene in scenes.items():
             for grounder in grounders:
-                row = measure(client, scene, grounder, args.requests, args.warmup)
-                print(
-                    f"| {label} | {grounder} | {row['p50']:.2f} | {row['p99']:.2f} | "
-                    f"{row['proposer_p50']:.2f} | {row['grounder_p50']:.2f} |"
-                )
+                for series, n, source in (("repeated", args.requests, None), ("new", args.new_requests, new)):
+                    row = measure(client, scene, grounder, n, args.warmup, source)
+                    print(
+                        f"| {label} | {grounder} | {series} | {row['p50']:.2f} | {row['p99']:.2f} | "
+                        f"{row['proposer_p50']:.2f} | {row['grounder_p50']:.2f} |"
+                    )
 
 
 if __name__ == "__main__":

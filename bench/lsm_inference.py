@@ -5,7 +5,7 @@ The LSM embeds the hypothesis text ("the mug on the table"), not the raw utteran
 keeps the target's name costs what a cached utterance does.
 
 `--precision` picks the MiniLM pass (`TextEncoder`): "auto" (the service's default) is bfloat16 on CPUs
-with AMX, float32 elsewhere."""
+with native bfloat16 instructions (AMX or AVX512-BF16), float32 elsewhere."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from app.allocator import keep_freed_buffers
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.relations import Relation
 from app.lsm.grounder import DEFAULT_MODEL_DIR, LSMGrounder
-from app.lsm.text_encoder import PRECISIONS, TextEncoder, amx_available
+from app.lsm.text_encoder import PRECISIONS, TextEncoder, native_bfloat16_available
 from app.scene_graph.model import SceneGraph
 from app.vocabulary import object_nouns
 
@@ -64,7 +64,7 @@ def main() -> None:
     print(
         f"LSM {grounder.version}, 5 hypotheses, {len(scene.objects)}-object room, torch threads "
         f"{torch.get_num_threads()}, text encoder {encoder.precision}, {_cpu_name()} "
-        f"({platform.machine()}, AMX {'yes' if amx_available() else 'no'})"
+        f"({platform.machine()}, native bfloat16 {'yes' if native_bfloat16_available() else 'no'})"
     )
     for label, samples in timings.items():
         p50, p99 = np.percentile(samples, [50, 99])

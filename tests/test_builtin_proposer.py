@@ -450,3 +450,37 @@ def test_parameters_round_trip_and_refuse_a_mismatch(tmp_path: Path, encoder: Te
         ProposerParams.from_json(data)
     with pytest.raises(ModelUnavailable, match="fit-proposer"):
         ProposerParams.load(tmp_path / "missing.json")
+
+
+class CountingEncoder:
+    """The real encoder, recording the texts each call sends through MiniLM's cache or pass."""
+
+    def __init__(self, inner: TextEncoder) -> None:
+        self.inner = inner
+        self.sha256 = inner.sha256
+        self.calls: list[list[str]] = []
+
+    def encode(self, texts: Any) -> np.ndarray:
+        self.calls.append(list(texts))
+        return self.inner.encode(texts)
+
+
+def test_a_pinned_vocabulary_spares_the_encoder_a_new_target_name_and_changes_nothing(
+    encoder: TextEncoder, room_60: SceneGraph
+) -> None:
+    counting = CountingEncoder(encoder)
+    pinned = BuiltinProposer.load(counting)  # type: ignore[arg-type]
+    plain = BuiltinProposer.load(encoder)
+    pinned.embed_vocabulary()
+    pinned.propose(room_60, "the kettle is on the table")  # the map's labels, once
+    counting.calls.clear()
+    for utterance in ["I left the stapler on the desk", "my umbrella is next to the lamp"]:
+        got, want = pinned.propose(room_60, utterance), plain.propose(room_60, utterance)
+        assert [(h.anchor_ids, h.relation) for h in got.hypotheses] == [
+            (h.anchor_ids, h.relation) for h in want.hypotheses
+        ]
+        np.testing.assert_allclose(
+            [h.weight for h in got.hypotheses], [h.weight for h in want.hypotheses], atol=1e-6
+        )
+        assert got.background == pytest.approx(want.background, abs=1e-6)
+    assert [t for call in counting.calls for t in call] == []  # every name and phrase was pinned or cached

@@ -15,9 +15,9 @@ from app.lsm.text_encoder import (
     MiniLMForward,
     TextEncoder,
     _load_transformer,
-    amx_available,
     default_model_dir,
     file_sha256,
+    native_bfloat16_available,
 )
 
 
@@ -149,15 +149,18 @@ def test_rejects_an_unknown_precision():
 def test_auto_precision_falls_back_to_float32_without_amx(monkeypatch):
     import app.lsm.text_encoder as text_encoder
 
-    monkeypatch.setattr(text_encoder, "amx_available", lambda: False)
+    monkeypatch.setattr(text_encoder, "native_bfloat16_available", lambda: False)
     assert TextEncoder(precision="auto").precision == "float32"
-    with pytest.raises(ModelUnavailable, match="AMX"):
+    with pytest.raises(ModelUnavailable, match="AVX512-BF16"):
         TextEncoder(precision="bfloat16")
 
 
-@pytest.mark.skipif(not amx_available(), reason="the bfloat16 pass needs a CPU with AMX")
+@pytest.mark.skipif(
+    not native_bfloat16_available(), reason="the bfloat16 pass needs a CPU with AMX or AVX512-BF16"
+)
 def test_bfloat16_embeddings_stay_within_cosine_0_99995_of_float32():
-    """What the LSM sees on AMX machines: embeddings as close to the float32 ones as their rounding allows."""
+    """What the LSM sees on machines with native bfloat16: embeddings as close to the float32 ones as their
+    rounding allows."""
     exact = TextEncoder(precision="float32")
     fast = TextEncoder(precision="auto")
     assert fast.precision == "bfloat16" and exact.precision == "float32"

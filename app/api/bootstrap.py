@@ -88,7 +88,9 @@ def _load_builtin(settings: Settings) -> HypothesisProposer:
     from app.grounding.builtin import BuiltinProposer
     from app.lsm.text_encoder import default_text_encoder
 
-    return BuiltinProposer.load(default_text_encoder(settings.text_encoder_precision))
+    proposer = BuiltinProposer.load(default_text_encoder(settings.text_encoder_precision))
+    proposer.embed_vocabulary()  # a new target name costs no MiniLM pass in a request
+    return proposer
 
 
 def _describe_lsm(settings: Settings) -> Grounder:
