@@ -44,7 +44,7 @@ from functools import lru_cache
 import numpy as np
 
 from app.grounding.relations import Relation
-from app.scene_graph.model import SceneObject
+from app.scene_graph.model import SceneObject, object_corners
 from app.vocabulary import in_classes, same_class
 
 # on: the target's bottom may lie this far above the anchor's top (boxes float a little in scans) ...
@@ -153,7 +153,7 @@ class Box:
             return cls(objects.min_corner, objects.max_corner)
         if not objects:
             return cls(np.zeros((0, 3)), np.zeros((0, 3)))
-        return cls(np.stack([o.min_corner for o in objects]), np.stack([o.max_corner for o in objects]))
+        return cls(*object_corners(objects))
 
     @property
     def center(self) -> np.ndarray:

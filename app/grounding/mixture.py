@@ -19,6 +19,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from app.scene_graph.model import object_corners
+
 if TYPE_CHECKING:
     from app.scene_graph.model import SceneGraph
 
@@ -122,9 +124,8 @@ def map_box(scene_graph: SceneGraph) -> UniformBox:
     """
     if not scene_graph.objects:
         return UniformBox(np.full(3, -0.5), np.full(3, 0.5))
-    low = np.min([o.min_corner for o in scene_graph.objects], axis=0)
-    high = np.max([o.max_corner for o in scene_graph.objects], axis=0)
-    return UniformBox.around(low, high)
+    lows, highs = object_corners(scene_graph.objects)
+    return UniformBox.around(lows.min(axis=0), highs.max(axis=0))
 
 
 def _empty(*shape: int) -> np.ndarray:
@@ -176,7 +177,9 @@ class GaussianMixture:
             np.stack([np.asarray(g.mean, dtype=np.float64) for g in gaussians]) if gaussians else _empty(3)
         )
         covs = (
-            np.stack([project_to_pd(g.covariance, min_eigenvalue) for g in gaussians])
+            project_to_pd(
+                np.stack([np.asarray(g.covariance, dtype=np.float64) for g in gaussians]), min_eigenvalue
+            )
             if gaussians
             else _empty(3, 3)
         )

@@ -55,7 +55,7 @@ from app.grounding.box_relations import (
 )
 from app.grounding.parsing import COLOR_WORDS, MATERIAL_WORDS, SHAPE_WORDS, SIZE_WORDS
 from app.grounding.relations import Relation
-from app.scene_graph.model import SceneObject
+from app.scene_graph.model import SceneObject, object_corners
 
 FEATURES: tuple[str, ...] = (
     "label_cosine",
@@ -113,9 +113,7 @@ class SceneBoxes:
         if not objects:
             msg = "a scene without objects has no boxes"
             raise ValueError(msg)
-        center = np.array([o.center for o in objects], dtype=np.float64)  # (N, 3)
-        half = np.array([o.half_extent for o in objects], dtype=np.float64)  # (N, 3)
-        lo, hi = center - half, center + half
+        lo, hi = object_corners(objects)  # (N, 3) each
         return cls(lo, hi, float(lo[:, 2].min()), lo[:, :2].min(axis=0), hi[:, :2].max(axis=0))
 
     @property

@@ -53,7 +53,7 @@ from app.errors import NotFound
 from app.grounding.box_relations import internal_support_reach
 from app.grounding.relations import Relation
 from app.lsm.model import RELATION_INDEX, ROLE_ANCHOR, ROLE_OTHER, LSMBatch, LSMConfig
-from app.scene_graph.model import SceneGraph
+from app.scene_graph.model import SceneGraph, aabb_extents
 
 Embed = Callable[[Sequence[str]], np.ndarray]
 ORDINAL_RELATIONS = (Relation.CLOSEST, Relation.FARTHEST)
@@ -179,14 +179,6 @@ class SceneArrays:
             dominant_yaw=dominant,
             centroid=centers.mean(axis=0),
         )
-
-
-def aabb_extents(dims: np.ndarray, yaws: np.ndarray) -> np.ndarray:
-    """Sides (M, 3) of the axis-aligned boxes of boxes with sides `dims` (M, 3) turned by `yaws` (M,)."""
-    cos, sin = np.abs(np.cos(yaws)), np.abs(np.sin(yaws))
-    return np.stack(
-        [cos * dims[:, 0] + sin * dims[:, 1], sin * dims[:, 0] + cos * dims[:, 1], dims[:, 2]], axis=1
-    )
 
 
 def percentile(values: np.ndarray, q: float) -> float:
