@@ -30,6 +30,7 @@ stream ends after the session's "deleted" event.
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
 import random
 import time
@@ -108,6 +109,17 @@ class BeliefGrid:
     posterior: np.ndarray  # (N,) float32, sums to 1
     lang: np.ndarray | None = None
     vis: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class TopDownView:
+    """The posterior seen from above (`TopDownOut` in the OpenAPI): `mass[i, j]` is the mass of the column of
+    voxels over x in [x0 + i s, x0 + (i + 1) s), y in [y0 + j s, y0 + (j + 1) s), (x0, y0) = `min_corner`."""
+
+    version: int
+    min_corner: tuple[float, float]
+    voxel_size: float
+    mass: np.ndarray  # (nx, ny) float32, sums to 1
 
 
 @dataclass(frozen=True)
@@ -256,6 +268,19 @@ class _Calls:
         )
 
     @staticmethod
+    def get_belief_topdown(session_id: str, etag: str | None) -> Request:
+        headers = {"If-None-Match": etag} if etag else {}
+        return Request("GET", f"/v1/sessions/{session_id}/belief/topdown", {"headers": headers})
+
+    @staticmethod
+    def get_scene_graph(session_id: str) -> Request:
+        return Request("GET", f"/v1/sessions/{session_id}/scene-graph", {})
+
+    @staticmethod
+    def list_utterances(session_id: str) -> Request:
+        return Request("GET", f"/v1/sessions/{session_id}/utterances", {})
+
+    @staticmethod
     def session_events(session_id: str, after: str | None, reconnect: bool, idle_s: float) -> _Follow:
         return _Follow(f"/v1/sessions/{session_id}/events", {}, after, reconnect, idle_s, session=True)
 
@@ -310,6 +335,18 @@ def _belief(response: httpx.Response) -> tuple[dict[str, Any] | None, str | None
     if response.status_code == 304:
         return None, etag
     return _checked(response).json(), etag
+
+
+def _top_down(response: httpx.Response) -> tuple[TopDownView | None, str | None]:
+    """(view, etag); view is None when the belief has not changed (304)."""
+    etag = response.headers.get("etag")
+    if response.status_code == 304:
+        return None, etag
+    body = _checked(response).json()
+    nx, ny = body["shape"]
+    mass = np.frombuffer(base64.b64decode(body["mass"]), dtype="<f4").reshape(nx, ny)
+    corner = (float(body["min_corner"][0]), float(body["min_corner"][1]))
+    return TopDownView(body["version"], corner, float(body["voxel_size"]), mass), etag
 
 
 def _grid(response: httpx.Response) -> BeliefGrid:
@@ -432,6 +469,20 @@ class VLMapClient:
 
     def get_belief_grid(self, session_id: str, layers: bool = False) -> BeliefGrid:
         return _grid(self._send(_Calls.get_belief_grid(session_id, layers)))
+
+    def get_belief_topdown(
+        self, session_id: str, etag: str | None = None
+    ) -> tuple[TopDownView | None, str | None]:
+        """(the posterior seen from above, or None if unchanged since `etag`; the current ETag)."""
+        return _top_down(self._send(_Calls.get_belief_topdown(session_id, etag)))
+
+    def get_scene_graph(self, session_id: str) -> dict[str, Any]:
+        """The scene graph the session grounds utterances in (native format)."""
+        return _object(self._send(_Calls.get_scene_graph(session_id)))
+
+    def list_utterances(self, session_id: str) -> dict[str, Any]:
+        """The utterances still in the session's event history: `UtteranceHistoryOut` in the OpenAPI."""
+        return _object(self._send(_Calls.list_utterances(session_id)))
 
     def get_recording(self, session_id: str, after: int | None = None) -> dict[str, Any]:
         """The session's recorded frames (after version `after`): `RecordingOut` in the OpenAPI."""
@@ -585,6 +636,17 @@ class AsyncVLMapClient:
 
     async def get_belief_grid(self, session_id: str, layers: bool = False) -> BeliefGrid:
         return _grid(await self._send(_Calls.get_belief_grid(session_id, layers)))
+
+    async def get_belief_topdown(
+        self, session_id: str, etag: str | None = None
+    ) -> tuple[TopDownView | None, str | None]:
+        return _top_down(await self._send(_Calls.get_belief_topdown(session_id, etag)))
+
+    async def get_scene_graph(self, session_id: str) -> dict[str, Any]:
+        return _object(await self._send(_Calls.get_scene_graph(session_id)))
+
+    async def list_utterances(self, session_id: str) -> dict[str, Any]:
+        return _object(await self._send(_Calls.list_utterances(session_id)))
 
     async def get_recording(self, session_id: str, after: int | None = None) -> dict[str, Any]:
         return _object(await self._send(_Calls.get_recording(session_id, after)))

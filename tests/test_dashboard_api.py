@@ -13,6 +13,7 @@ from html.parser import HTMLParser
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -233,3 +234,26 @@ def test_the_page_and_its_assets_are_served_without_a_key_and_load_nothing_else(
 def test_the_page_is_not_in_the_api_contract(keyed: TestClient) -> None:
     paths = keyed.get("/openapi.json").json()["paths"]
     assert not [path for path in paths if path.startswith("/dashboard")]
+
+
+def test_the_client_reads_the_top_down_view_scene_graph_and_utterances() -> None:
+    from app.client import VLMapClient
+    from tests.test_events import served
+
+    with (
+        served(model_free_settings(api_keys=json.dumps(KEYS))) as server,
+        VLMapClient(server.url, api_key=ROBOT) as robot,
+        VLMapClient(server.url, api_key=VIEWER) as viewer,
+    ):
+        session_id = robot.create_session("r1", SCENE, target_label="backpack")["id"]
+        robot.send_utterance(session_id, "I left my backpack on the table")
+        raw = httpx.get(f"{server.url}/v1/sessions/{session_id}/belief/topdown", headers=auth(VIEWER)).json()
+        view, etag = viewer.get_belief_topdown(session_id)
+        assert view is not None and etag == f'"v{raw["version"]}"' and view.version == raw["version"]
+        assert view.mass.shape == tuple(raw["shape"]) and np.array_equal(view.mass, top_down(raw))
+        assert view.min_corner == tuple(raw["min_corner"]) and view.voxel_size == raw["voxel_size"]
+        assert viewer.get_belief_topdown(session_id, etag) == (None, etag)  # unchanged: 304
+        graph = viewer.get_scene_graph(session_id)
+        assert sorted(o["id"] for o in graph["objects"]) == sorted(str(o["id"]) for o in SCENE["objects"])
+        history = viewer.list_utterances(session_id)
+        assert [u["utterance"] for u in history["utterances"]] == ["I left my backpack on the table"]
