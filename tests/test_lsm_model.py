@@ -368,7 +368,7 @@ def tiny_checkpoint(tmp_path_factory) -> Path:
         directory,
         extra={
             "version": "tiny-test",
-            "calibration": {"overall": 2.0, "per_relation": {"between": 4.0}},
+            "calibration": {"overall": 2.0, "per_relation": {"between": 4.0}, "tail_floor": 0.3},
             "text_encoder": {"sha256": MINILM_SHA256},
         },
     )
@@ -404,7 +404,7 @@ def test_grounder_applies_calibration_and_matches_the_batched_evaluation_path(
     tiny_checkpoint, encoder, cases
 ):
     """Served densities = training-time predictions with every covariance scaled by c_r (between 4,
-    others 2)."""
+    others 2) and every tail weight a raised to a + (1 - a) 0.3: what `apply_calibration` scores."""
     grounder = LSMGrounder.load(tiny_checkpoint, encoder=encoder)
     model, _ = load_checkpoint(tiny_checkpoint)
     samples, served = [], []
@@ -422,12 +422,17 @@ def test_grounder_applies_calibration_and_matches_the_batched_evaluation_path(
             )
         )
     predicted = predict(model, PackedSamples(samples, encoder.encode), samples, batch_size=3)
+    groups = [case.hypotheses[0].relation.value for case in cases]
+    scored = apply_calibration(predicted, groups, grounder.calibration)
     for k, (case, density) in enumerate(zip(cases, served, strict=True)):
         scale = 4.0 if case.hypotheses[0].relation is Relation.BETWEEN else 2.0
         np.testing.assert_allclose(density.means[0], predicted.means[k], atol=1e-4)
         np.testing.assert_allclose(density.covariances[0], scale * predicted.core[k], rtol=1e-3, atol=1e-6)
         np.testing.assert_allclose(density.covariances[1], scale * predicted.tail[k], rtol=1e-3, atol=1e-6)
-        np.testing.assert_allclose(density.weights[1], predicted.weights[k], atol=1e-6)
+        a = predicted.weights[k]
+        np.testing.assert_allclose(density.weights[1], a + (1.0 - a) * 0.3, atol=1e-6)
+        np.testing.assert_allclose(density.weights[1], scored.weights[k], atol=1e-6)
+        np.testing.assert_allclose(density.covariances[1], scored.tail[k], rtol=1e-3, atol=1e-6)
 
 
 def test_grounder_describe_names_the_weights(tiny_checkpoint, encoder):
@@ -639,3 +644,25 @@ def test_the_calibration_margin_multiplies_every_scale():
     )
     assert own["per_relation"]["near"] == pytest.approx(1.4 * plain["per_relation"]["near"])
     assert own["per_relation"]["on"] == pytest.approx(1.1 * plain["per_relation"]["on"])
+
+
+def test_the_tail_floor_raises_every_tail_weight_before_the_scales_are_fitted():
+    """Targets from a density with a 20% tail; the model says 0%: with a floor of 0.2 the fitted densities
+    are the true ones (scale 1), without it the fitted scale has to stretch the core instead."""
+    rng = np.random.default_rng(7)
+    n = 6000
+    core, tail = np.tile(np.eye(3) * 0.04, (n, 1, 1)), np.tile(np.eye(3) * 1.0, (n, 1, 1))
+    in_tail = rng.uniform(size=n) < 0.2
+    targets = np.where(in_tail[:, None], rng.normal(size=(n, 3)) * 1.0, rng.normal(size=(n, 3)) * 0.2)
+    model = Densities(np.zeros((n, 3)), core, tail, np.zeros(n))
+    relations = ["near"] * n
+    floored = fit_calibration(model, targets, relations, tail_floor=0.2)
+    plain = fit_calibration(model, targets, relations)
+    assert floored["tail_floor"] == 0.2 and plain["tail_floor"] == 0.0
+    assert floored["per_relation"]["near"] == pytest.approx(1.0, abs=0.05)
+    assert plain["per_relation"]["near"] > 3.0
+    served = apply_calibration(model, relations, floored)
+    np.testing.assert_allclose(served.weights, 0.2)
+    assert (
+        np.mean(served.nll(targets)) < np.mean(apply_calibration(model, relations, plain).nll(targets)) - 0.3
+    )

@@ -45,6 +45,18 @@ def calibration_scale(calibration: Mapping[str, Any], key: str) -> float:
     return float(per_relation.get(key, calibration.get("overall", 1.0)))
 
 
+def calibrated_tail_weight(calibration: Mapping[str, Any], a: np.ndarray | float) -> np.ndarray | float:
+    """The tail's weight after calibration, a' = a + (1 - a) eps with eps = `tail_floor` (0 if absent).
+
+    The tail is the wide component the model learned for its own errors; on maps unlike its training the
+    errors are heavier-tailed than it learned (most of the excess is a few cases far off), so every density
+    keeps at least a share eps on its tail. eps is a calibration constant, chosen on one leave-one-source-
+    out fold and checked on the other (the model card).
+    """
+    eps = float(calibration.get("tail_floor", 0.0))
+    return a + (1.0 - a) * eps
+
+
 class LSMGrounder:
     """The learned spatial grounder (`name = "lsm"`)."""
 
@@ -107,14 +119,14 @@ class LSMGrounder:
             for k, (sample, scale) in enumerate(zip(samples, scales, strict=True))
         ]
 
-    @staticmethod
-    def _density(sample: Sample, out: LSMOutput, k: int, scale: float) -> GaussianMixture:
-        """Hypothesis k's density in the world frame, its covariances scaled by the calibration c."""
+    def _density(self, sample: Sample, out: LSMOutput, k: int, scale: float) -> GaussianMixture:
+        """Hypothesis k's density in the world frame: its covariances scaled by the calibration's c, its
+        tail's weight raised to the calibration's floor."""
         covariances = [out.covariance[k]]
         weights = [1.0]
         tail = out.tail_covariance
         if tail is not None and out.tail_weight is not None:
-            a = float(out.tail_weight[k])
+            a = float(calibrated_tail_weight(self.calibration, float(out.tail_weight[k])))
             covariances.append(tail[k])
             weights = [1.0 - a, a]
         mean, covs = sample.to_world(

@@ -52,7 +52,7 @@ from app.grounding.mixture import UniformBox
 from app.grounding.parsing import target_noun
 from app.grounding.relations import Relation
 from app.lsm.features import EmbeddingCache, PackedSamples, Sample, make_sample
-from app.lsm.grounder import REGION_KEY, calibration_scale
+from app.lsm.grounder import REGION_KEY, calibrated_tail_weight, calibration_scale
 from app.lsm.model import LanguageSensorModel, LSMConfig, load_checkpoint, save_checkpoint
 from app.lsm.text_encoder import MINILM_SHA256, TextEncoder
 from app.training.search import golden_section
@@ -101,6 +101,7 @@ class TrainConfig:
     calibration_prior_cases: float = 50.0  # see fit_calibration
     calibration_margin: float = 1.0  # every fitted scale times this (see fit_calibration) ...
     calibration_margins: dict[str, float] = field(default_factory=dict)  # ... or this, per relation
+    calibration_tail_floor: float = 0.0  # every tail weight a -> a + (1 - a) eps (see fit_calibration)
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> TrainConfig:
@@ -124,6 +125,7 @@ class TrainConfig:
             calibration_prior_cases=float(values.get("calibration_prior_cases", 50.0)),
             calibration_margin=float(values.get("calibration_margin", 1.0)),
             calibration_margins={k: float(v) for k, v in (values.get("calibration_margins") or {}).items()},
+            calibration_tail_floor=float(values.get("calibration_tail_floor", 0.0)),
         )
 
     @classmethod
@@ -271,6 +273,11 @@ class Densities:
     def take(self, index: np.ndarray) -> Densities:
         return Densities(self.means[index], self.core[index], self.tail[index], self.weights[index])
 
+    def with_tail_floor(self, calibration: dict[str, Any]) -> Densities:
+        """The tail weights raised as the calibration says (`calibrated_tail_weight`)."""
+        weights = np.asarray(calibrated_tail_weight(calibration, self.weights), dtype=np.float64)
+        return Densities(self.means, self.core, self.tail, weights)
+
     @property
     def moment_covariances(self) -> np.ndarray:
         """(1 - a) Sigma + a Sigma_tail, (S, 3, 3)."""
@@ -399,13 +406,16 @@ def fit_calibration(
     prior_cases: float = 50.0,
     margin: float = 1.0,
     margins: dict[str, float] | None = None,
+    tail_floor: float = 0.0,
 ) -> dict[str, Any]:
     """Covariance scales c_k per group k: the NLL-minimising scale of every covariance of the group's
     densities, shrunk towards the pooled one, log c_k = (n_k log c^_k + K log c^) / (n_k + K), K =
     `prior_cases`, so that a group with few calibration cases does not get a noisy scale; then times
-    `margins[k]` (default `margin`), for data further from training than the calibration split (the model
-    card says how they were chosen)."""
+    `margins[k]` (default `margin`), for data further from training than the calibration split. With
+    `tail_floor` eps every tail weight is first raised to a + (1 - a) eps (`calibrated_tail_weight`) and the
+    scales fitted to those densities. The model card says how the margins and eps were chosen."""
     margins = margins or {}
+    densities = densities.with_tail_floor({"tail_floor": tail_floor})
     names = np.asarray(groups)
     pooled = _nll_optimal_scale(densities, targets)
     per_group, counts = {}, {}
@@ -418,8 +428,10 @@ def fit_calibration(
         per_group[g] = float(margins.get(g, margin) * shrunk)
     return {
         "method": "covariance scale per relation (and for region hypotheses): the NLL-optimal scale on the "
-        "calibration split, shrunk to the pooled one in log space, times the margin",
+        "calibration split, shrunk to the pooled one in log space, times the margin; tail weights raised to "
+        "a + (1 - a) tail_floor",
         "prior_cases": prior_cases,
+        "tail_floor": tail_floor,
         "margin": margin,
         "margins": margins,
         "overall": margin * pooled,
@@ -449,7 +461,9 @@ def _nll_optimal_scale(densities: Densities, targets: np.ndarray) -> float:
 
 
 def apply_calibration(densities: Densities, groups: list[str], calibration: dict[str, Any]) -> Densities:
-    return densities.scaled(np.array([calibration_scale(calibration, g) for g in groups]))
+    """What the grounder serves: the tail floor, then each group's covariance scale."""
+    floored = densities.with_tail_floor(calibration)
+    return floored.scaled(np.array([calibration_scale(calibration, g) for g in groups]))
 
 
 def ground_cases(grounder: Grounder, cases: list[GroundingCase]) -> Densities:
@@ -586,6 +600,7 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
         config.calibration_prior_cases,
         config.calibration_margin,
         config.calibration_margins,
+        config.calibration_tail_floor,
     )
     training = {
         "data": {n: {"samples": len(s.samples), "skipped_cases": s.skipped} for n, s in splits.items()},
@@ -633,6 +648,7 @@ def recalibrate(model_dir: Path, config: TrainConfig, out_dir: Path) -> dict[str
         config.calibration_prior_cases,
         config.calibration_margin,
         config.calibration_margins,
+        config.calibration_tail_floor,
     )
     extra = {k: v for k, v in meta.items() if k != "model"} | {
         "calibration": calibration,
