@@ -177,3 +177,18 @@ def test_bfloat16_embeddings_stay_within_cosine_0_99995_of_float32():
         a, b = exact.encode(batch), fast.encode(batch)
         assert float(np.min(np.sum(a * b, axis=1))) > 0.99995
         assert float(np.max(np.abs(a - b))) < 3e-3
+
+
+def test_pinned_texts_outlive_the_cache_and_equal_their_embeddings():
+    encoder = TextEncoder(cache_size=2)
+    pinned = ["lamp", "dining table", "trash can"]
+    encoder.pin(pinned)
+    passes: list[list[str]] = []
+    embed = encoder._embed
+    encoder._embed = lambda texts: passes.append(list(texts)) or embed(texts)  # type: ignore[method-assign]
+    encoder.encode(["a sofa", "a bed", "a chair", "a desk"])  # evicts everything the cache held
+    got = encoder.encode(pinned)
+    assert passes == [["a sofa", "a bed", "a chair", "a desk"]]  # the pinned texts ran no pass
+    for text, vector in zip(pinned, got, strict=True):
+        assert float(vector @ embed([text])[0]) > 0.99999
+    assert len(encoder._cache) == 2  # pins do not count against the cache's size

@@ -71,15 +71,7 @@ from app.grounding.referent_features import (
 )
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, SceneObject
-from app.vocabulary import (
-    class_key,
-    lemmas,
-    lexical_match,
-    normalise,
-    object_nouns,
-    other_names,
-    regions_named,
-)
+from app.vocabulary import class_key, lemmas, lexical_match, normalise, other_names, regions_named
 
 DEFAULT_PARAMS_PATH = Path(__file__).resolve().parents[2] / "models" / "proposer" / "params.json"
 LABEL_CACHE_SIZE = 50_000  # object names whose embeddings the proposer keeps
@@ -383,17 +375,7 @@ class BuiltinProposer:
         self.encoder = encoder
         self.params = params
         self._label_vectors: dict[str, np.ndarray] = {}
-        self._vocabulary_vectors: dict[str, np.ndarray] = {}  # pinned by `embed_vocabulary`
         self._cache_lock = threading.Lock()
-
-    def embed_vocabulary(self) -> None:
-        """Embed every object noun of the vocabulary now and keep them for the proposer's life (about 600
-        texts, 0.9 MB; half a second of MiniLM). The parser reads a target only as one of these nouns or a
-        label of the map, so afterwards a target name never said before costs a request no encoder pass
-        unless it is a map's own label. The service calls this at start; other users need not."""
-        nouns = sorted(object_nouns())
-        vectors = np.asarray(self.encoder.encode(nouns), dtype=np.float32)
-        self._vocabulary_vectors = dict(zip(nouns, vectors, strict=True))
 
     @classmethod
     def load(cls, encoder: SentenceEncoder, path: Path | None = None) -> BuiltinProposer:
@@ -803,27 +785,20 @@ class BuiltinProposer:
         return np.asarray(self.params.default_target_box, dtype=np.float64)
 
     def _phrase_vectors(self, texts: list[str]) -> np.ndarray:
-        """Unit embeddings (P, D) of phrases: the vocabulary's pinned ones, the others from the encoder,
-        whose own cache makes repeated phrases free."""
-        pinned = self._vocabulary_vectors
-        missing = list(dict.fromkeys(t for t in texts if t not in pinned))
-        encoded = dict(zip(missing, self.encoder.encode(missing), strict=True)) if missing else {}
-        return np.stack([pinned[t] if t in pinned else encoded[t] for t in texts]).astype(np.float64)
+        """Unit embeddings (P, D) of phrases; the encoder's own cache makes repeated phrases free."""
+        return np.asarray(self.encoder.encode(texts), dtype=np.float64)
 
     def _name_vectors(self, names: list[str]) -> np.ndarray:
-        """Unit embeddings (U, D) of object names: the vocabulary's pinned ones, others kept here (the
-        `LABEL_CACHE_SIZE` most recently added): a map's other labels cost one encoder batch the first time
-        only."""
-        pinned = self._vocabulary_vectors
+        """Unit embeddings (U, D) of object names, kept here (the `LABEL_CACHE_SIZE` most recently added):
+        a map's labels cost one encoder batch the first time only."""
         with self._cache_lock:
-            missing = [n for n in names if n not in pinned and n not in self._label_vectors]
+            missing = [n for n in names if n not in self._label_vectors]
             if missing:
                 for name, vector in zip(missing, self.encoder.encode(missing), strict=True):
                     self._label_vectors[name] = np.asarray(vector, dtype=np.float32)
                 while len(self._label_vectors) > LABEL_CACHE_SIZE:
                     del self._label_vectors[next(iter(self._label_vectors))]
-            vectors = [pinned[n] if n in pinned else self._label_vectors[n] for n in names]
-            return np.stack(vectors).astype(np.float64)
+            return np.stack([self._label_vectors[n] for n in names]).astype(np.float64)
 
 
 def _reading(relation: Relation, label: str) -> tuple[Relation, bool]:

@@ -90,6 +90,7 @@ class TextEncoder:
         self.max_tokens = max_tokens
         self.cache_size = cache_size
         self._cache: OrderedDict[str, np.ndarray] = OrderedDict()
+        self._pinned: dict[str, np.ndarray] = {}  # `pin`: outside the LRU cache, never evicted
         self._lock = threading.Lock()
         tokenizer, model = _load_transformer(self.model_dir)
         self._tokenizer = tokenizer
@@ -122,13 +123,15 @@ class TextEncoder:
         self.precision = "bfloat16"
 
     def encode(self, texts: Sequence[str], batch_size: int = 256) -> np.ndarray:
-        """Unit-norm embeddings, shape (len(texts), 384), float32; cached texts skip the transformer.
+        """Unit-norm embeddings, shape (len(texts), 384), float32; pinned and cached texts skip the
+        transformer.
 
         Thread-safe: requests share one encoder; the cache is read and updated under a lock, the transformer
         runs outside it.
         """
         with self._lock:
-            known = {t: self._cache[t] for t in texts if t in self._cache}
+            known = {t: self._pinned[t] for t in texts if t in self._pinned}
+            known |= {t: self._cache[t] for t in texts if t in self._cache}
         missing = list(dict.fromkeys(t for t in texts if t not in known))
         for start in range(0, len(missing), batch_size):
             chunk = missing[start : start + batch_size]
@@ -136,11 +139,24 @@ class TextEncoder:
         out = np.stack([known[t] for t in texts]) if texts else np.empty((0, EMBEDDING_DIM), np.float32)
         with self._lock:
             for text, vector in known.items():
+                if text in self._pinned:
+                    continue
                 self._cache[text] = vector
                 self._cache.move_to_end(text)
             while len(self._cache) > self.cache_size:
                 self._cache.popitem(last=False)
         return out
+
+    def pin(self, texts: Sequence[str]) -> None:
+        """Embed `texts` now and keep them for the encoder's life, outside the LRU cache (384 floats each).
+        The service pins the vocabulary's object nouns at start: the parser reads a target only as one of
+        them or a label of the map, so a target name never asked for before costs no transformer pass in a
+        request unless it is a map's own label."""
+        vectors = self.encode(texts)
+        with self._lock:
+            self._pinned.update(zip(texts, vectors, strict=True))
+            for text in texts:
+                self._cache.pop(text, None)
 
     def _embed(self, texts: list[str]) -> np.ndarray:
         import torch
