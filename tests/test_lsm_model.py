@@ -223,6 +223,61 @@ def test_label_text_splits_camel_case_and_underscores():
     assert label_text("  Trash  can ") == "trash can"
 
 
+def test_a_composed_sample_embeds_the_target_name_apart_from_the_relation(cases):
+    """text_input "composed": the sample's text is the relation-anchor phrase, the target's name is embedded
+    on its own, and the sample's embedding is normalize(E(name) + E(phrase)), one row per distinct pair."""
+    case = cases[5]  # between the sofa and the TV stand
+    truth = case.hypotheses[0]
+    cfg = LSMConfig(**TINY, text_input="composed")
+    samples = [
+        make_sample(case.scene_graph, truth.anchor_ids, truth.relation, name, cfg)
+        for name in ("CoffeeTable", "mug", "mug")
+    ]
+    assert [(s.text, s.target_text) for s in samples] == [
+        ("between the sofa and the tv stand", "coffee table"),
+        ("between the sofa and the tv stand", "mug"),
+        ("between the sofa and the tv stand", "mug"),
+    ]
+    packed = PackedSamples(samples, _fake_embed)
+    for sample, row in zip(samples, packed.text_index.tolist(), strict=True):
+        want = _fake_embed([sample.target_text])[0] + _fake_embed([sample.text])[0]
+        np.testing.assert_allclose(packed.embeddings[row].numpy(), want / np.linalg.norm(want), atol=1e-6)
+    assert packed.text_index[1] == packed.text_index[2] != packed.text_index[0]
+    whole = make_sample(case.scene_graph, truth.anchor_ids, truth.relation, "mug", LSMConfig(**TINY))
+    assert (whole.text, whole.target_text) == ("the mug between the sofa and the tv stand", None)
+    with pytest.raises(ValueError, match="text_input"):
+        make_sample(
+            case.scene_graph, truth.anchor_ids, truth.relation, "mug", LSMConfig(**TINY, text_input="x")
+        )
+
+
+def test_a_composed_lsm_grounds_a_new_target_name_without_a_text_encoder_pass(cases):
+    """With the vocabulary pinned (as the service starts) and the map's phrases seen once, hypotheses about
+    a target name never asked for run no MiniLM pass, and ground as an encoder without pins does."""
+    torch.manual_seed(0)
+    model = LanguageSensorModel(LSMConfig(**TINY, text_input="composed"))
+    meta = {"version": "test", "calibration": {}}
+    pinned, plain = TextEncoder(cache_size=64), TextEncoder()
+    pinned.pin(["kettle", "stapler", "umbrella"])
+    passes: list[list[str]] = []
+    embed = pinned._embed
+    pinned._embed = lambda texts: passes.append(list(texts)) or embed(texts)  # type: ignore[method-assign]
+    with_pins, without = LSMGrounder(model, meta, pinned, "0" * 64), LSMGrounder(model, meta, plain, "0" * 64)
+    case = cases[5]
+    truth = case.hypotheses[0]
+    anchor = truth.anchor_ids[:1]
+    hypotheses = [Hypothesis(truth.anchor_ids, truth.relation), Hypothesis(anchor, Relation.NEAR)]
+    with_pins.ground(case.scene_graph, "the kettle is near the sofa", hypotheses)  # the map's texts, once
+    passes.clear()
+    for utterance in ["I left the stapler near the sofa", "my umbrella is near the sofa"]:
+        got = with_pins.ground(case.scene_graph, utterance, hypotheses)
+        want = without.ground(case.scene_graph, utterance, hypotheses)
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_allclose(a.means, b.means, atol=1e-4)
+            np.testing.assert_allclose(a.covariances, b.covariances, atol=1e-4)
+    assert passes == []
+
+
 def test_make_sample_keeps_anchors_first_and_the_nearest_objects(cases):
     case = cases[5]  # between the sofa and the TV stand
     cfg = LSMConfig(**TINY)

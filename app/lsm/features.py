@@ -5,10 +5,15 @@ stacks many of them with their text embeddings and slices batches (`LSMBatch`) o
 geometry features on the fly. The text encoder is frozen, so embeddings are looked up, never trained:
 `EmbeddingCache` keeps them on disk during training and the grounder keeps them in an LRU.
 
-**What the model reads of the language** is the hypothesis, not the utterance: `hypothesis_text` writes
-"the mug on the table" from the target's name, the relation and the anchors' labels. Everything else a
-person said (which table, "you know, the one I always use") is the proposer's business; here it could only
-move the prediction without saying anything about position.
+**What the model reads of the language** is the hypothesis, not the utterance: the target's name, the
+relation and the anchors' labels. Everything else a person said (which table, "you know, the one I always
+use") is the proposer's business; here it could only move the prediction without saying anything about
+position. The checkpoint's `text_input` says how the hypothesis becomes one embedding e (`TEXT_INPUTS`):
+
+- "hypothesis": e = E("the mug on the table") (`hypothesis_text`), one MiniLM pass per new hypothesis;
+- "composed": e = normalize(E("mug") + E("on the table")) (`relation_text`): the target's name and the
+  relation-anchor phrase are embedded apart. The service pins every vocabulary noun's embedding and a map's
+  phrases repeat across utterances, so an utterance about a target never asked for costs no MiniLM pass.
 
 **The local frame.** Every sample is expressed relative to its anchors, so that the prediction moves with
 the scene (invariance up to the same rigid motion):
@@ -81,17 +86,31 @@ def label_text(label: str) -> str:
     return " ".join(words.lower().split())
 
 
-def hypothesis_text(target: str, relation: Relation, anchor_labels: Sequence[str]) -> str:
-    """What the model reads: "the mug on the table", "the lamp between the sofa and the tv stand"."""
+#: How a checkpoint turns a hypothesis into its text embedding (`LSMConfig.text_input`; module docstring).
+TEXT_INPUTS = ("hypothesis", "composed")
+
+
+def target_text(target: str) -> str:
+    """The phrase a target's name is embedded as ("object" for none)."""
+    return label_text(target) or "object"
+
+
+def relation_text(relation: Relation, anchor_labels: Sequence[str]) -> str:
+    """The relation and the anchors: "on the table", "between the sofa and the tv stand"."""
     anchors = " and the ".join(label_text(a) for a in anchor_labels) or ROOM_LABEL
-    return f"the {label_text(target) or 'object'} {RELATION_WORDS[Relation(relation)]} the {anchors}"
+    return f"{RELATION_WORDS[Relation(relation)]} the {anchors}"
+
+
+def hypothesis_text(target: str, relation: Relation, anchor_labels: Sequence[str]) -> str:
+    """The whole hypothesis: "the mug on the table", "the lamp between the sofa and the tv stand"."""
+    return f"the {target_text(target)} {relation_text(relation, anchor_labels)}"
 
 
 @dataclass(frozen=True)
 class Sample:
     """One hypothesis in its scene, in its local frame: the kept objects (anchors first) and the region."""
 
-    text: str  # hypothesis_text
+    text: str  # hypothesis_text, or relation_text when `target_text` is set ("composed")
     labels: tuple[str, ...]  # n embedding texts
     centers: np.ndarray  # (n, 3) metres, local frame
     sizes: np.ndarray  # (n, 3) axis-aligned extents in the local frame, metres
@@ -108,6 +127,7 @@ class Sample:
     origin: np.ndarray  # (3,) float64: the local frame's origin in the world
     yaw: float  # the local frame's rotation about z: world = R(yaw) local + origin
     target: np.ndarray | None = None  # (3,) local frame
+    target_text: str | None = None  # "composed": embedded apart from `text`, the two summed
 
     def to_world(self, mean: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A local-frame mean (3,) and covariances (..., 3, 3) in the world frame."""
@@ -235,8 +255,12 @@ def make_sample(
 
     No `anchor_ids`: a region hypothesis, anchored on region `region_id`'s box (the map's when None or
     unknown). `target_name` is what the speaker called the target ("mug"); the sample's text is
-    `hypothesis_text` of it. `target` (world) is carried into the local frame, for training and evaluation.
+    `hypothesis_text` of it, or with `cfg.text_input` "composed" `relation_text` and `target_text` apart.
+    `target` (world) is carried into the local frame, for training and evaluation.
     """
+    if cfg.text_input not in TEXT_INPUTS:
+        msg = f"LSM text_input {cfg.text_input!r} is not one of {TEXT_INPUTS}"
+        raise ValueError(msg)
     arrays = scene if isinstance(scene, SceneArrays) else SceneArrays.of(scene)
     row = arrays.rows
     missing = [i for i in anchor_ids if i not in row]
@@ -294,8 +318,11 @@ def make_sample(
     anchor_low = (kept_centers[:n_anchors] - 0.5 * kept_sizes[:n_anchors]).min(axis=0)
     anchor_high = (kept_centers[:n_anchors] + 0.5 * kept_sizes[:n_anchors]).max(axis=0)
     scale = region_frame(anchor_low, anchor_high, Relation(relation), cfg, (scene_low, scene_high))
+    composed = cfg.text_input == "composed"
     return Sample(
-        text=hypothesis_text(target_name, relation, anchor_labels),
+        text=relation_text(relation, anchor_labels)
+        if composed
+        else hypothesis_text(target_name, relation, anchor_labels),
         labels=anchor_labels + tuple(arrays.labels[k] for k in others),
         centers=kept_centers.astype(np.float32),
         sizes=kept_sizes.astype(np.float32),
@@ -314,6 +341,7 @@ def make_sample(
         target=None
         if target is None
         else local(np.asarray(target, dtype=np.float64)[None])[0].astype(np.float32),
+        target_text=target_text(target_name) if composed else None,
     )
 
 
@@ -414,9 +442,20 @@ class PackedSamples:
         if not samples:
             msg = "cannot pack zero samples"
             raise ValueError(msg)
-        texts = list(dict.fromkeys([s.text for s in samples] + [t for s in samples for t in s.labels]))
-        row = {text: i for i, text in enumerate(texts)}
-        self.embeddings = torch.from_numpy(np.ascontiguousarray(embed(texts), dtype=np.float32))  # (U, E)
+        names = [s.target_text for s in samples if s.target_text is not None]
+        texts = list(
+            dict.fromkeys([s.text for s in samples] + names + [t for s in samples for t in s.labels])
+        )
+        row: dict[str | tuple[str, str], int] = {text: i for i, text in enumerate(texts)}
+        embeddings = np.ascontiguousarray(embed(texts), dtype=np.float32)  # (U, E)
+        # A composed sample's embedding is a row of its own after the texts': normalize(E(name) + E(text)).
+        pairs = list(dict.fromkeys((s.text, s.target_text) for s in samples if s.target_text is not None))
+        if pairs:
+            summed = embeddings[[row[t] for t, _ in pairs]] + embeddings[[row[n] for _, n in pairs]]  # (C, E)
+            summed /= np.maximum(np.linalg.norm(summed, axis=1, keepdims=True), 1e-12)
+            row.update({pair: len(texts) + k for k, pair in enumerate(pairs)})
+            embeddings = np.concatenate([embeddings, summed])
+        self.embeddings = torch.from_numpy(embeddings)  # (U + C, E)
         counts = np.array([len(s.labels) for s in samples])
         n_samples, n_obj = len(samples), int(counts.max())
         # Filled as numpy arrays (a slice assignment there costs a fraction of torch's), then shared.
@@ -430,7 +469,9 @@ class PackedSamples:
             centers[i, :n] = s.centers
             sizes[i, :n] = s.sizes
             roles[i, :n] = s.roles
-        self.text_index = torch.tensor([row[s.text] for s in samples])  # (S,)
+        self.text_index = torch.tensor(
+            [row[s.text if s.target_text is None else (s.text, s.target_text)] for s in samples]
+        )  # (S,)
         self.label_index = torch.from_numpy(label_index)  # (S, N)
         self.centers = torch.from_numpy(centers)  # (S, N, 3)
         self.sizes = torch.from_numpy(sizes)  # (S, N, 3)

@@ -83,6 +83,10 @@ class LSMConfig:
     region_margin_z: float = 1.5
     region_min_half_extent: float = 0.5  # floor on every component of s (metres)
     ordinal_scene_frame: bool = True  # closest/farthest: s grows to reach the whole scene's bounding box
+    # How a hypothesis's text embedding is made (features.TEXT_INPUTS): "hypothesis", one MiniLM pass over
+    # "the mug on the table"; "composed", normalize(E("mug") + E("on the table")), the target's name and the
+    # relation-anchor phrase embedded apart, so that a new target name costs no pass (names are pinned).
+    text_input: str = "hypothesis"
 
     @property
     def n_outputs(self) -> int:
