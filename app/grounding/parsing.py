@@ -730,6 +730,7 @@ def _fallback_target(utterance: str, region_names: tuple[str, ...]) -> str:
     return clean_target(body[: match.start()] if match else body)
 
 
+@lru_cache(maxsize=4096)  # the LSM reads it beside the proposer's own parse; robots repeat themselves
 def target_noun(utterance: str, region_names: tuple[str, ...] = ()) -> str:
     """The target's name as said, without determiners or attribute words: "my small black backpack ..."
     -> "backpack" (what the spatial grounder reads of the target)."""

@@ -17,10 +17,10 @@ import torch
 
 from app.errors import ModelUnavailable
 from app.grounding.hypotheses import Hypothesis
-from app.grounding.mixture import Gaussian, GaussianMixture, project_to_pd
+from app.grounding.mixture import GaussianMixture, project_to_pd
 from app.grounding.parsing import target_noun
 from app.lsm.checkpoint import CONFIG_NAME, LSM_NAME, WEIGHTS_NAME, description, file_sha256
-from app.lsm.features import PackedSamples, Sample, SceneArrays, make_sample
+from app.lsm.features import PackedSamples, Sample, SceneArrays, make_sample, rotation_z
 from app.lsm.inference import LSMInference
 from app.lsm.model import LanguageSensorModel, LSMOutput, load_checkpoint
 from app.lsm.text_encoder import TextEncoder
@@ -114,26 +114,28 @@ class LSMGrounder:
         ]
         out = self.inference(PackedSamples(samples, self.encoder.encode))
         scales = np.array([calibration_scale(self.calibration, calibration_key(h)) for h in hypotheses])
-        return [
-            self._density(sample, out, k, scale)
-            for k, (sample, scale) in enumerate(zip(samples, scales, strict=True))
-        ]
+        return self._densities(samples, out, scales)
 
-    def _density(self, sample: Sample, out: LSMOutput, k: int, scale: float) -> GaussianMixture:
-        """Hypothesis k's density in the world frame: its covariances scaled by the calibration's c, its
-        tail's weight raised to the calibration's floor."""
-        covariances = [out.covariance[k]]
-        weights = [1.0]
-        tail = out.tail_covariance
-        if tail is not None and out.tail_weight is not None:
-            a = float(calibrated_tail_weight(self.calibration, float(out.tail_weight[k])))
-            covariances.append(tail[k])
-            weights = [1.0 - a, a]
-        mean, covs = sample.to_world(
-            out.mean[k].double().numpy(), scale * torch.stack(covariances).double().numpy()
-        )
-        gaussians = [Gaussian(mean=mean, covariance=c) for c in project_to_pd(covs)]
-        return GaussianMixture.from_components(weights, gaussians)
+    def _densities(self, samples: list[Sample], out: LSMOutput, scales: np.ndarray) -> list[GaussianMixture]:
+        """Every hypothesis's density in the world frame at once: its covariances scaled by the calibration's
+        c, its tail's weight raised to the calibration's floor, repaired onto the PD cone in one batch."""
+        covariances = out.covariance.double().numpy()[:, None]  # (K, 1, 3, 3)
+        weights = np.ones((len(samples), 1))  # (K, C)
+        if out.tail_covariance is not None and out.tail_weight is not None:
+            a = np.asarray(calibrated_tail_weight(self.calibration, out.tail_weight.double().numpy()))  # (K,)
+            covariances = np.concatenate([covariances, out.tail_covariance.double().numpy()[:, None]], axis=1)
+            weights = np.stack([1.0 - a, a], axis=1)
+        rotations = np.stack([rotation_z(s.yaw) for s in samples])  # (K, 3, 3): world = R local + origin
+        origins = np.stack([s.origin for s in samples])  # (K, 3)
+        means = np.einsum("kij,kj->ki", rotations, out.mean.double().numpy()) + origins  # (K, 3)
+        covariances = scales[:, None, None, None] * covariances
+        world = rotations[:, None] @ covariances @ np.swapaxes(rotations, -1, -2)[:, None]  # (K, C, 3, 3)
+        repaired = project_to_pd(world)
+        n_components = weights.shape[1]
+        return [
+            GaussianMixture(weights[k], np.repeat(means[k : k + 1], n_components, axis=0), repaired[k])
+            for k in range(len(samples))
+        ]
 
     def describe(self) -> dict[str, Any]:
         return description(self.meta, self.weights_sha256)

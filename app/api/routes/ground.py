@@ -32,6 +32,8 @@ from app.scene_graph.model import SceneGraph
 from app.settings import Settings
 
 router = APIRouter(prefix="/v1", tags=["grounding"])
+#: Scene graphs up to this many objects and regions are checked on the event loop (0.1-0.2 ms at 60).
+INLINE_OBJECTS = 100
 
 
 @router.post(
@@ -50,11 +52,22 @@ async def ground(
 ) -> GroundResponse:
     """Ground an utterance in a scene graph: weighted hypotheses and a Gaussian mixture over the target."""
     options = body.options or GroundOptions()
-    scene_graph = await services.run(checked_request, body, settings)
+    if is_small(body):  # a fraction of a millisecond: cheaper here than the trip to a worker thread
+        scene_graph = checked_request(body, settings)
+    else:
+        scene_graph = await services.run(checked_request, body, settings)
     result, sensor = await services.ground(
         sensors, options.grounder, options.proposer, scene_graph, body.utterance, caller_hypotheses(options)
     )
+    if not body.query_points:
+        return respond(result, sensor, None)
     return await services.run(respond, result, sensor, body.query_points)
+
+
+def is_small(body: GroundRequest) -> bool:
+    """Whether the request's scene graph is native and small enough to check on the event loop."""
+    graph = body.scene_graph
+    return isinstance(graph, SceneGraph) and len(graph.objects) + len(graph.regions) <= INLINE_OBJECTS
 
 
 def resolve_scene_graph(
