@@ -211,8 +211,8 @@ def load_split(
 ) -> Split:
     """Cases with a ground-truth hypothesis whose anchors exist -> samples; the others count as skipped.
 
-    The text of each sample is `hypothesis_text` of the target's name as the utterance says it; with
-    `resting_on`, "on" labels rest on plain tops (`resting_position`).
+    The text of each sample is made (`make_sample`, `cfg.text_input`) from the target's name as the
+    utterance says it; with `resting_on`, "on" labels rest on plain tops (`resting_position`).
     """
     samples: list[Sample] = []
     groups: list[str] = []
