@@ -86,7 +86,8 @@ def test_the_fit_objective_is_the_served_density(encoder: TextEncoder, grounder:
         )[0]
         y = np.asarray(case.target.position, dtype=np.float64)[None]
         served = float(sensor.ground(case.scene_graph, case.utterance).mixture.logpdf(y)[0])
-        assert float(fitted) == pytest.approx(served, abs=1e-6), case.case_id
+        # The two paths batch the hypotheses in different orders through the float32 LSM: ~1e-6 apart.
+        assert float(fitted) == pytest.approx(served, abs=1e-5), case.case_id
         checked += 1
     assert checked == 70 and negations >= 30  # the negated readings' region term is the carved broad term
 
