@@ -27,7 +27,9 @@ async def _advertised(port: int, topics: Topics) -> tuple[str | None, dict[str, 
     url = f"ws://127.0.0.1:{port}"
     async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=WAIT_S) as ws:  # type: ignore[list-item]
         channels: dict[str, Any] = {}
-        while topics.belief not in channels:
+        # A session's channels may come in more than one advertise message: wait for all of them.
+        wanted = {topics.scene_graph, topics.belief, topics.mixture, topics.utterances, topics.summary}
+        while not wanted <= channels.keys():
             message = json.loads(await asyncio.wait_for(ws.recv(), WAIT_S))
             if message["op"] == "advertise":
                 channels |= {c["topic"]: c for c in message["channels"]}
