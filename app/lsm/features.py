@@ -8,7 +8,7 @@ geometry features on the fly. The text encoder is frozen, so embeddings are look
 **What the model reads of the language** is the hypothesis, not the utterance: the target's name, the
 relation and the anchors' labels. Everything else a person said (which table, "you know, the one I always
 use") is the proposer's business; here it could only move the prediction without saying anything about
-position. The checkpoint's `text_input` says how the hypothesis becomes one embedding e (`TEXT_INPUTS`):
+position. The checkpoint's `text_input` says how the hypothesis becomes one embedding e (`app.lsm.model.TEXT_INPUTS`):
 
 - "hypothesis": e = E("the mug on the table") (`hypothesis_text`), one MiniLM pass per new hypothesis;
 - "composed": e = normalize(E("mug") + E("on the table")) (`relation_text`): the target's name and the
@@ -84,10 +84,6 @@ def label_text(label: str) -> str:
     """The phrase a label is embedded as: "DiningTable" -> "dining table", "trash_can" -> "trash can"."""
     words = _CAMEL_BOUNDARY.sub(" ", label).replace("_", " ").replace("-", " ")
     return " ".join(words.lower().split())
-
-
-#: How a checkpoint turns a hypothesis into its text embedding (`LSMConfig.text_input`; module docstring).
-TEXT_INPUTS = ("hypothesis", "composed")
 
 
 def target_text(target: str) -> str:
@@ -258,9 +254,6 @@ def make_sample(
     `hypothesis_text` of it, or with `cfg.text_input` "composed" `relation_text` and `target_text` apart.
     `target` (world) is carried into the local frame, for training and evaluation.
     """
-    if cfg.text_input not in TEXT_INPUTS:
-        msg = f"LSM text_input {cfg.text_input!r} is not one of {TEXT_INPUTS}"
-        raise ValueError(msg)
     arrays = scene if isinstance(scene, SceneArrays) else SceneArrays.of(scene)
     row = arrays.rows
     missing = [i for i in anchor_ids if i not in row]

@@ -48,6 +48,10 @@ ROLE_QUERY, ROLE_ANCHOR, ROLE_OTHER = 0, 1, 2
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
+#: How a checkpoint turns a hypothesis into its text embedding (`text_input`; see app.lsm.features).
+TEXT_INPUTS = ("hypothesis", "composed")
+
+
 @dataclass
 class LSMConfig:
     """Every size of the model and of its input features. Defaults are the reference's sizes."""
@@ -83,10 +87,15 @@ class LSMConfig:
     region_margin_z: float = 1.5
     region_min_half_extent: float = 0.5  # floor on every component of s (metres)
     ordinal_scene_frame: bool = True  # closest/farthest: s grows to reach the whole scene's bounding box
-    # How a hypothesis's text embedding is made (features.TEXT_INPUTS): "hypothesis", one MiniLM pass over
+    # How a hypothesis's text embedding is made (TEXT_INPUTS): "hypothesis", one MiniLM pass over
     # "the mug on the table"; "composed", normalize(E("mug") + E("on the table")), the target's name and the
     # relation-anchor phrase embedded apart, so that a new target name costs no pass (names are pinned).
     text_input: str = "hypothesis"
+
+    def __post_init__(self) -> None:
+        if self.text_input not in TEXT_INPUTS:
+            msg = f"LSM text_input {self.text_input!r} is not one of {TEXT_INPUTS}"
+            raise ValueError(msg)
 
     @property
     def n_outputs(self) -> int:
