@@ -8,7 +8,8 @@ geometry features on the fly. The text encoder is frozen, so embeddings are look
 **What the model reads of the language** is the hypothesis, not the utterance: the target's name, the
 relation and the anchors' labels. Everything else a person said (which table, "you know, the one I always
 use") is the proposer's business; here it could only move the prediction without saying anything about
-position. The checkpoint's `text_input` says how the hypothesis becomes one embedding e (`app.lsm.model.TEXT_INPUTS`):
+position. The checkpoint's `text_input` (`app.lsm.model.TEXT_INPUTS`) says how the hypothesis becomes one
+embedding e:
 
 - "hypothesis": e = E("the mug on the table") (`hypothesis_text`), one MiniLM pass per new hypothesis;
 - "composed": e = normalize(E("mug") + E("on the table")) (`relation_text`): the target's name and the
