@@ -584,6 +584,39 @@ def test_scene_arrays_match_the_scene_graph():
     assert turned.floor_z == pytest.approx(arrays.floor_z)
 
 
+def _box_corners(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
+    """The 8 corners (8, 3) of a box turned by yaw about its centre."""
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+    return center + (0.5 * signs * size) @ rotation_z(yaw).T
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.4, -2.9])
+def test_a_samples_scene_box_is_the_box_of_every_corner_in_its_local_frame(yaw):
+    """The scene box of each hypothesis (objects' and regions' boxes, computed once per frame yaw) equals
+    the min and max of every box's corners carried into the sample's local frame, on a turned, shifted room
+    with regions, for every anchor."""
+    scene_file = Path(__file__).parent / "resources" / "scenes" / "scannet_scene0000_00.json"
+    offset = np.array([3.0, -7.0, 1.5])
+    room = SceneGraph.model_validate_json(scene_file.read_text(encoding="utf-8"))
+    moved = moved_scene(room, yaw, offset)
+    # Region boxes stay axis-aligned in the world; one of them reaches past every object.
+    regions = [r.model_copy(update={"center": (r.center + offset).tolist()}) for r in room.regions]
+    hall = regions[0].model_copy(update={"id": "hall", "center": (offset + np.array([9.0, 0, 0])).tolist()})
+    scene_graph = moved.model_copy(update={"regions": [*regions, hall]})
+    corners = np.concatenate(
+        [_box_corners(np.asarray(o.center), np.asarray(o.size), o.yaw) for o in scene_graph.objects]
+        + [_box_corners(np.asarray(r.center), np.asarray(r.size), 0.0) for r in scene_graph.regions]
+    )  # (8 (M + R), 3)
+    arrays = SceneArrays.of(scene_graph)
+    cfg = LSMConfig(max_objects=8)
+    for obj in scene_graph.objects:
+        sample = make_sample(arrays, [obj.id], Relation.NEAR, "mug", cfg)
+        local = (corners - sample.origin) @ rotation_z(sample.yaw)
+        np.testing.assert_allclose(sample.scene_low, local.min(axis=0), atol=1e-5)
+        np.testing.assert_allclose(sample.scene_high, local.max(axis=0), atol=1e-5)
+    assert 1 <= len(arrays._turned_boxes) <= 5  # the dominant yaw plus -2 to 2 quarter turns
+
+
 @pytest.mark.parametrize("n", [1, 2, 7, 60, 151])
 def test_percentile_equals_numpy(n):
     values = np.random.default_rng(n).normal(size=n)

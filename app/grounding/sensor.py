@@ -125,7 +125,8 @@ class LanguageSensor:
                 for d, h in zip(self.grounder.ground(scene_graph, utterance, grounded), grounded, strict=True)
             ]
         served = list(grounded)
-        for merged, density in merged_tail(scene_graph, rest):
+        box = map_box(scene_graph)  # the broad term's and the merged tail's, measured once
+        for merged, density in merged_tail(scene_graph, rest, box):
             served.append(merged)
             densities.append(density)
         weights = np.array([h.weight for h in served], dtype=np.float64)
@@ -134,7 +135,7 @@ class LanguageSensor:
         served_hypotheses = tuple(replace(h, weight=float(w)) for h, w in zip(served, weights, strict=True))
         if beta <= 0.0:
             return Grounding(proposal, served_hypotheses, mixture, timings, tuple(densities), 0.0)
-        broad = broad_term(beta, scene_graph, proposal)
+        broad = broad_term(beta, scene_graph, proposal, box)
         full = GaussianMixture.combine([1.0 - beta, beta], [mixture, broad])
         return Grounding(proposal, served_hypotheses, full, timings, tuple(densities), beta, broad)
 
@@ -186,17 +187,17 @@ def widened(density: GaussianMixture, spread: float) -> GaussianMixture:
 
 
 def merged_tail(
-    scene_graph: SceneGraph, hypotheses: Sequence[Hypothesis]
+    scene_graph: SceneGraph, hypotheses: Sequence[Hypothesis], box: UniformBox | None = None
 ) -> list[tuple[Hypothesis, GaussianMixture]]:
     """One summarising hypothesis and one broad Gaussian per region for the hypotheses not grounded one by
     one: each hypothesis stands for a rough Gaussian at its anchors' centre (sigma = half extent + 0.5 m
     per axis; the whole map's box for a region hypothesis), and the region's Gaussian is their
-    weight-averaged moment match, its weight their sum."""
+    weight-averaged moment match, its weight their sum. `box`: the map's (`map_box`), if measured already."""
     by_region: dict[str | None, list[Hypothesis]] = defaultdict(list)
     for h in hypotheses:
         by_region[h.region_id].append(h)
     out = []
-    box = map_box(scene_graph)
+    box = map_box(scene_graph) if box is None else box
     for region_id, group in by_region.items():
         weights = np.array([h.weight for h in group])
         means, covs = [], []
@@ -223,22 +224,29 @@ def merged_tail(
     return out
 
 
-def broad_term(beta: float, scene_graph: SceneGraph, proposal: Proposal) -> GaussianMixture:
-    """The broad term normalised, (beta_min U(map) + (beta - beta_min) B) / beta (module docstring)."""
+def broad_term(
+    beta: float, scene_graph: SceneGraph, proposal: Proposal, box: UniformBox | None = None
+) -> GaussianMixture:
+    """The broad term normalised, (beta_min U(map) + (beta - beta_min) B) / beta (module docstring); `box`
+    is the map's (`map_box`), if measured already."""
     floor = min(MIN_BACKGROUND_WEIGHT, beta)
-    uniform = GaussianMixture.from_components([], [], boxes=[map_box(scene_graph)], box_weights=[1.0])
-    broad = broad_density(scene_graph, proposal.parse, proposal.avoid)
+    box = map_box(scene_graph) if box is None else box
+    uniform = GaussianMixture.from_components([], [], boxes=[box], box_weights=[1.0])
+    broad = broad_density(scene_graph, proposal.parse, proposal.avoid, box)
     return GaussianMixture.combine([floor, beta - floor], [uniform, broad])
 
 
 def broad_density(
-    scene_graph: SceneGraph, parse: UtteranceParse, avoid: Sequence[UniformBox] = ()
+    scene_graph: SceneGraph,
+    parse: UtteranceParse,
+    avoid: Sequence[UniformBox] = (),
+    box: UniformBox | None = None,
 ) -> GaussianMixture:
     """The broad density B: uniform over what the utterance allows (`broad_boxes`), with a share
     `WIDE_SHARE` on one wide Gaussian about the map (sigma = half the map box's side per axis), so that
-    places just outside the mapped objects' box (a partly explored map) keep some mass."""
-    boxes, weights = broad_boxes(scene_graph, parse, avoid)
-    box = map_box(scene_graph)
+    places just outside the mapped objects' box (a partly explored map) keep some mass. `box`: the map's."""
+    box = map_box(scene_graph) if box is None else box
+    boxes, weights = broad_boxes(scene_graph, parse, avoid, box)
     wide = Gaussian(box.center, np.diag((0.5 * box.size) ** 2))
     return GaussianMixture.from_components(
         [WIDE_SHARE], [wide], boxes=boxes, box_weights=(1.0 - WIDE_SHARE) * weights
@@ -246,11 +254,14 @@ def broad_density(
 
 
 def broad_boxes(
-    scene_graph: SceneGraph, parse: UtteranceParse, avoid: Sequence[UniformBox] = ()
+    scene_graph: SceneGraph,
+    parse: UtteranceParse,
+    avoid: Sequence[UniformBox] = (),
+    box: UniformBox | None = None,
 ) -> tuple[list[UniformBox], np.ndarray]:
     """The uniform part of B as boxes with weights summing to one: the mentioned regions (equal shares),
     else the map's box minus the `avoid` boxes (shares by volume, so it is uniform on what is left), else
-    the map's box."""
+    the map's box. `box`: the map's, if measured already."""
     region_ids = regions_named(scene_graph.regions, parse.region_phrase)
     if region_ids:
         boxes = [
@@ -262,11 +273,12 @@ def broad_boxes(
             if r.id in region_ids
         ]
         return boxes, np.full(len(boxes), 1.0 / len(boxes))
-    pieces = [map_box(scene_graph)]
+    box = map_box(scene_graph) if box is None else box
+    pieces = [box]
     for hole in avoid:
         pieces = [part for piece in pieces for part in subtract(piece, hole)]
     if not pieces:  # the negation covers the whole map: nothing is left to prefer
-        pieces = [map_box(scene_graph)]
+        pieces = [box]
     volumes = np.array([p.volume for p in pieces])
     return pieces, volumes / volumes.sum()
 

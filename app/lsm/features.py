@@ -48,7 +48,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
@@ -155,6 +155,29 @@ class SceneArrays:
     floor_z: float  # 10th percentile of object bottoms: most furniture stands on the floor
     dominant_yaw: float  # in [-pi/4, pi/4): the scene's yaw modulo a quarter turn
     centroid: np.ndarray  # (3,) mean of the objects' centres
+    _turned_boxes: dict[float, tuple[np.ndarray, np.ndarray]] = field(
+        default_factory=dict, compare=False, repr=False
+    )
+
+    def turned_box(self, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+        """Corners (low, high) of the box around every object's and region's box in the frame turned by `yaw`
+        about the world origin (points R(yaw)^T p); the box in a local frame with origin o is this minus
+        R(yaw)^T o. A scene's frame yaws are its dominant yaw plus quarter turns, so a few boxes, computed
+        once, serve all of its hypotheses."""
+        cached = self._turned_boxes.get(yaw)
+        if cached is None:
+            turn = rotation_z(yaw)
+            centers, half = self.centers @ turn, 0.5 * aabb_extents(self.dims, self.yaws - yaw)  # (M, 3)
+            low, high = (centers - half).min(axis=0), (centers + half).max(axis=0)
+            if self.regions:
+                region_centers = np.stack([c for c, _, _ in self.regions.values()]) @ turn
+                region_half = 0.5 * aabb_extents(
+                    np.stack([size for _, size, _ in self.regions.values()]), np.full(len(self.regions), -yaw)
+                )
+                low = np.minimum(low, (region_centers - region_half).min(axis=0))
+                high = np.maximum(high, (region_centers + region_half).max(axis=0))
+            cached = self._turned_boxes[yaw] = (low, high)
+        return cached
 
     @classmethod
     def of(cls, scene_graph: SceneGraph) -> SceneArrays:
@@ -297,17 +320,8 @@ def make_sample(
             aabb_extents(arrays.dims[others], arrays.yaws[others] - yaw),
         ]
     )
-    every_center = local(arrays.centers)  # (M, 3)
-    every_half = 0.5 * aabb_extents(arrays.dims, arrays.yaws - yaw)
-    scene_low = (every_center - every_half).min(axis=0)
-    scene_high = (every_center + every_half).max(axis=0)
-    if arrays.regions:
-        region_centers = local(np.stack([c for c, _, _ in arrays.regions.values()]))
-        region_half = 0.5 * aabb_extents(
-            np.stack([size for _, size, _ in arrays.regions.values()]), np.full(len(arrays.regions), -yaw)
-        )
-        scene_low = np.minimum(scene_low, (region_centers - region_half).min(axis=0))
-        scene_high = np.maximum(scene_high, (region_centers + region_half).max(axis=0))
+    turned_low, turned_high = arrays.turned_box(yaw)
+    scene_low, scene_high = turned_low - origin @ rotation, turned_high - origin @ rotation
     n_anchors = len(anchor_centers)
     anchor_low = (kept_centers[:n_anchors] - 0.5 * kept_sizes[:n_anchors]).min(axis=0)
     anchor_high = (kept_centers[:n_anchors] + 0.5 * kept_sizes[:n_anchors]).max(axis=0)
