@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
+import threading
+from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
 
 from app.api.app import create_app
 from app.settings import Settings
+from app.sim.service import MODEL_FREE_ENV, free_port
+from app.stores.memory import MemorySessionStore
 
 
 def test_health_and_readiness(client: TestClient) -> None:
@@ -31,8 +38,6 @@ def test_a_service_started_in_the_background_is_live_at_once_and_ready_once_load
 ) -> None:
     """`vlmap serve` answers /healthz while the models load, so that an orchestrator tells starting from
     dead; /readyz and what needs the models answer 503 until they are loaded."""
-    import threading
-
     from app.api import app as app_module
 
     loaded, build = threading.Event(), app_module.build_sensors
@@ -54,6 +59,55 @@ def test_a_service_started_in_the_background_is_live_at_once_and_ready_once_load
             threading.Event().wait(0.05)
         assert client.get("/readyz").json() == {"status": "ready", "grounder": "geometric"}
         assert client.post("/v1/ground", json=ground).status_code == 200
+
+
+def test_a_failed_background_start_up_says_why_and_asks_to_stop(
+    settings: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A start-up that fails in the background (here the model files) is not "still loading" for ever: the
+    503s carry its error and the app calls its stop hook once; liveness still answers."""
+    from app.api import app as app_module
+
+    def broken_build(*args: object, **kwargs: object) -> object:
+        msg = "models/lsm/model.safetensors: unreadable"
+        raise OSError(msg)
+
+    monkeypatch.setattr(app_module, "build_sensors", broken_build)
+    stops: list[bool] = []
+    app = create_app(settings, start_in_background=True, on_startup_failure=lambda: stops.append(True))
+    with TestClient(app) as client:
+        for _ in range(300):
+            if stops:
+                break
+            threading.Event().wait(0.05)
+        assert stops == [True]
+        ready = client.get("/readyz")
+        assert ready.status_code == 503
+        assert ready.json()["message"] == (
+            "the service failed to start and is stopping: models/lsm/model.safetensors: unreadable"
+        )
+        assert client.get("/healthz").status_code == 200
+
+
+def test_vlmap_serve_exits_1_when_its_data_directory_is_held(tmp_path: Path) -> None:
+    """`vlmap serve` whose start-up fails (another store holds its session data directory) logs why and
+    exits 1 instead of serving 503s for ever."""
+    held = MemorySessionStore(tmp_path)
+    try:
+        env = dict(os.environ, **MODEL_FREE_ENV, VLMAP_DATA_DIR=str(tmp_path), VLMAP_LOG_JSON="false")
+        done = subprocess.run(
+            [sys.executable, "-m", "app.cli", "serve", "--host", "127.0.0.1", "--port", str(free_port())],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+    finally:
+        held.close()
+    assert done.returncode == 1, done.stderr[-2000:]
+    assert "start-up failed" in done.stderr
+    assert "in use by another store" in done.stderr
 
 
 def test_models_lists_grounder_and_proposer(client: TestClient) -> None:

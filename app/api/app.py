@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from functools import partial
 from typing import Any
@@ -114,18 +114,33 @@ async def start_up(services: Services, owns_store: bool) -> None:
     log.info("ready", extra={"grounder": services.sensors.default, "store": settings.store})
 
 
+async def start_up_or_stop(services: Services, owns_store: bool, stop: Callable[[], None] | None) -> None:
+    """`start_up` in the background: if it fails (the data directory held by another service, a model file
+    unreadable), the error is logged and kept for the 503s, which say so instead of "still loading", and
+    `stop` is called: `vlmap serve` stops serving and exits 1, so that a supervisor restarts it."""
+    try:
+        await start_up(services, owns_store)
+    except Exception as exc:
+        services.startup_error = str(exc) or type(exc).__name__
+        log.critical("start-up failed", extra={"error": services.startup_error}, exc_info=exc)
+        if stop is not None:
+            stop()
+
+
 def create_app(
     settings: Settings | None = None,
     sensors: Sensors | None = None,
     store: SessionStore | None = None,
     *,
     start_in_background: bool = False,
+    on_startup_failure: Callable[[], None] | None = None,
 ) -> FastAPI:
     """Build the service. `sensors` and `store` override what the settings describe (tests, benchmarks).
 
     `start_in_background`: serve at once while the models load (`/healthz` answers, `/readyz` and the
     routes that need the models or the store answer 503 until they are loaded), as `vlmap serve` does so
     that an orchestrator can tell "starting" from "dead"; otherwise the app is ready when it starts.
+    `on_startup_failure`: called if that background start-up fails (after the error is logged and kept).
     """
     settings = settings or get_settings()
     services = Services(settings=settings, metrics=Metrics(), sensors=sensors, store=store)
@@ -135,7 +150,7 @@ def create_app(
         owns_store = services.store is None
         async with anyio.create_task_group() as tasks:
             if start_in_background:
-                tasks.start_soon(start_up, services, owns_store)
+                tasks.start_soon(start_up_or_stop, services, owns_store, on_startup_failure)
             else:
                 await start_up(services, owns_store)
             tasks.start_soon(purge_expired_sessions, services)

@@ -58,17 +58,27 @@ def serve_command(args: argparse.Namespace) -> int:
             return 2
         log.warning("no API keys configured: every request is accepted (fine on loopback for development)")
     log.info("starting", extra={"host": host, "port": port, "grounder": settings.grounder})
-    uvicorn.run(
-        create_app(settings, start_in_background=True),
-        host=host,
-        port=port,
-        log_config=None,
-        access_log=False,
-        http=guarded_protocol(settings.header_timeout_s, settings.max_header_bytes),
-        limit_concurrency=settings.max_connections,
-        timeout_keep_alive=settings.keep_alive_s,
+
+    def stop() -> None:  # a failed start-up: stop serving (exit 1 below), not answer "still loading" for ever
+        server.should_exit = True
+
+    app = create_app(settings, start_in_background=True, on_startup_failure=stop)
+    server = uvicorn.Server(
+        uvicorn.Config(
+            app,
+            host=host,
+            port=port,
+            log_config=None,
+            access_log=False,
+            http=guarded_protocol(settings.header_timeout_s, settings.max_header_bytes),
+            limit_concurrency=settings.max_connections,
+            timeout_keep_alive=settings.keep_alive_s,
+        )
     )
-    return 0
+    server.run()
+    if not server.started:  # e.g. the port is taken: uvicorn.run's exit code for it
+        return 3
+    return 0 if app.state.services.startup_error is None else 1
 
 
 def is_loopback(host: str) -> bool:

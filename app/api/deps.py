@@ -43,19 +43,26 @@ async def get_settings(request: Request) -> Settings:
 
 
 async def get_sensors(request: Request) -> Sensors:
-    sensors = _services(request).sensors
-    if sensors is None:
-        msg = "the grounding models are still loading"
+    services = _services(request)
+    if services.sensors is None:
+        msg = not_started(services) or "the grounding models are still loading"
         raise ModelUnavailable(msg)
-    return sensors
+    return services.sensors
 
 
 async def get_sessions(request: Request) -> SessionService:
-    sessions = _services(request).sessions
-    if sessions is None:
-        msg = "the session store is not open"
+    services = _services(request)
+    if services.sessions is None:
+        msg = not_started(services) or "the session store is not open"
         raise ModelUnavailable(msg)
-    return sessions
+    return services.sessions
+
+
+def not_started(services: Services) -> str | None:
+    """The 503's message while a failed start-up stops the service, else None."""
+    if services.startup_error is None:
+        return None
+    return f"the service failed to start and is stopping: {services.startup_error}"
 
 
 def _query_names(dependant: Dependant) -> frozenset[str]:

@@ -36,6 +36,7 @@ class Services:
     store: SessionStore | None = None
     worker_processes: WorkerProcesses | None = None
     sessions: SessionService | None = None
+    startup_error: str | None = None  # why a start-up in the background failed (the service then stops)
     limiter: CapacityLimiter = field(init=False)
     keyring: KeyRing = field(init=False)
     rate_limiter: RateLimiter = field(init=False)
