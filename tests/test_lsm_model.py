@@ -31,6 +31,7 @@ from app.lsm.features import (
     pair_features,
     percentile,
     rotation_z,
+    to_world,
 )
 from app.lsm.grounder import DEFAULT_MODEL_DIR, LSMGrounder
 from app.lsm.model import (
@@ -615,6 +616,32 @@ def test_a_samples_scene_box_is_the_box_of_every_corner_in_its_local_frame(yaw):
         np.testing.assert_allclose(sample.scene_low, local.min(axis=0), atol=1e-5)
         np.testing.assert_allclose(sample.scene_high, local.max(axis=0), atol=1e-5)
     assert 1 <= len(arrays._turned_boxes) <= 5  # the dominant yaw plus -2 to 2 quarter turns
+
+
+def test_samples_to_world_equals_turning_each_one():
+    """`to_world` over a batch (each sample's frame, one or two covariances each) equals R mu + o and
+    R Sigma R^T sample by sample."""
+    scene_file = Path(__file__).parent / "resources" / "scenes" / "scannet_scene0590_00.json"
+    scene_graph = moved_scene(
+        SceneGraph.model_validate_json(scene_file.read_text(encoding="utf-8")), 0.7, np.array([2.0, 1.0, 0.5])
+    )
+    samples = [
+        make_sample(scene_graph, [o.id], Relation.ON, "mug", LSMConfig()) for o in scene_graph.objects[:9]
+    ]
+    assert len({round(s.yaw, 6) for s in samples}) > 1  # the batch mixes frames
+    rng = np.random.default_rng(0)
+    means = rng.normal(size=(9, 3))
+    factors = rng.normal(size=(9, 2, 3, 3))
+    covariances = factors @ np.swapaxes(factors, -1, -2)  # (9, 2, 3, 3)
+    world_means, world = to_world(samples, means, covariances)
+    for k, sample in enumerate(samples):
+        turn = rotation_z(sample.yaw)
+        np.testing.assert_allclose(world_means[k], turn @ means[k] + sample.origin, atol=1e-12)
+        for c in range(2):
+            np.testing.assert_allclose(world[k, c], turn @ covariances[k, c] @ turn.T, atol=1e-12)
+        mean, pair = sample.to_world(means[k], covariances[k])
+        np.testing.assert_allclose(mean, world_means[k], atol=1e-12)
+        np.testing.assert_allclose(pair, world[k], atol=1e-12)
 
 
 @pytest.mark.parametrize("n", [1, 2, 7, 60, 151])

@@ -127,9 +127,21 @@ class Sample:
     target_text: str | None = None  # "composed": embedded apart from `text`, the two summed
 
     def to_world(self, mean: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A local-frame mean (3,) and covariances (..., 3, 3) in the world frame."""
-        rotation = rotation_z(self.yaw)
-        return rotation @ mean + self.origin, rotation @ covariances @ rotation.T
+        """A local-frame mean (3,) and covariances (..., 3, 3) in the world frame (`to_world`)."""
+        means, world = to_world([self], mean[None], np.asarray(covariances)[None])
+        return means[0], world[0]
+
+
+def to_world(
+    samples: Sequence[Sample], means: np.ndarray, covariances: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Local-frame means (K, 3) and covariances (K, ..., 3, 3) of K samples in the world frame:
+    R_k mu_k + o_k and R_k Sigma R_k^T, with R_k = R(yaw_k) and o_k each sample's frame."""
+    rotations = np.stack([rotation_z(s.yaw) for s in samples])  # (K, 3, 3)
+    origins = np.stack([s.origin for s in samples])  # (K, 3)
+    world_means = np.einsum("kij,kj->ki", rotations, means) + origins
+    turn = rotations.reshape(len(samples), *[1] * (covariances.ndim - 3), 3, 3)  # (K, 1..., 3, 3)
+    return world_means, turn @ covariances @ np.swapaxes(turn, -1, -2)
 
 
 def rotation_z(yaw: float) -> np.ndarray:

@@ -20,7 +20,7 @@ from app.grounding.hypotheses import Hypothesis
 from app.grounding.mixture import GaussianMixture, project_to_pd
 from app.grounding.parsing import target_noun
 from app.lsm.checkpoint import CONFIG_NAME, LSM_NAME, WEIGHTS_NAME, description, file_sha256
-from app.lsm.features import PackedSamples, Sample, SceneArrays, make_sample, rotation_z
+from app.lsm.features import PackedSamples, Sample, SceneArrays, make_sample, to_world
 from app.lsm.inference import LSMInference
 from app.lsm.model import LanguageSensorModel, LSMOutput, load_checkpoint
 from app.lsm.text_encoder import TextEncoder
@@ -125,12 +125,8 @@ class LSMGrounder:
             a = np.asarray(calibrated_tail_weight(self.calibration, out.tail_weight.double().numpy()))  # (K,)
             covariances = np.concatenate([covariances, out.tail_covariance.double().numpy()[:, None]], axis=1)
             weights = np.stack([1.0 - a, a], axis=1)
-        rotations = np.stack([rotation_z(s.yaw) for s in samples])  # (K, 3, 3): world = R local + origin
-        origins = np.stack([s.origin for s in samples])  # (K, 3)
-        means = np.einsum("kij,kj->ki", rotations, out.mean.double().numpy()) + origins  # (K, 3)
-        covariances = scales[:, None, None, None] * covariances
-        world = rotations[:, None] @ covariances @ np.swapaxes(rotations, -1, -2)[:, None]  # (K, C, 3, 3)
-        repaired = project_to_pd(world)
+        means, world = to_world(samples, out.mean.double().numpy(), scales[:, None, None, None] * covariances)
+        repaired = project_to_pd(world)  # (K, C, 3, 3)
         n_components = weights.shape[1]
         return [
             GaussianMixture(weights[k], np.repeat(means[k : k + 1], n_components, axis=0), repaired[k])

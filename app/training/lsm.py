@@ -51,7 +51,7 @@ from app.grounding.interfaces import Grounder
 from app.grounding.mixture import UniformBox
 from app.grounding.parsing import target_noun
 from app.grounding.relations import Relation
-from app.lsm.features import EmbeddingCache, PackedSamples, Sample, make_sample
+from app.lsm.features import EmbeddingCache, PackedSamples, Sample, make_sample, to_world
 from app.lsm.grounder import REGION_KEY, calibrated_tail_weight, calibration_scale
 from app.lsm.model import LanguageSensorModel, LSMConfig, load_checkpoint, save_checkpoint
 from app.lsm.text_encoder import MINILM_SHA256, TextEncoder
@@ -342,12 +342,8 @@ def predict(
     local = Densities(
         np.concatenate(means), np.concatenate(core), np.concatenate(tail), np.concatenate(weights)
     )
-    world_means = np.empty_like(local.means)
-    world_core, world_tail = np.empty_like(local.core), np.empty_like(local.tail)
-    for i, sample in enumerate(samples):
-        world_means[i], pair = sample.to_world(local.means[i], np.stack([local.core[i], local.tail[i]]))
-        world_core[i], world_tail[i] = pair
-    return Densities(world_means, world_core, world_tail, local.weights)
+    world_means, world = to_world(samples, local.means, np.stack([local.core, local.tail], axis=1))
+    return Densities(world_means, world[:, 0], world[:, 1], local.weights)
 
 
 def density_summary(
