@@ -166,7 +166,7 @@ def test_storey_words_pick_regions_by_height() -> None:
     # The broad term reads a region phrase by the same rule as the proposer: "upstairs" is the upper bedroom.
     parse = parse_utterance("my keys are somewhere upstairs", ("bedroom", "kitchen"))
     assert parse.region_phrase is not None and "upstairs" in parse.region_phrase
-    boxes, _ = broad_boxes(graph, parse)
+    boxes, _ = broad_boxes(graph, parse, map_box(graph))
     up = next(r for r in graph.regions if r.id == "up")
     assert len(boxes) == 1 and np.allclose(boxes[0].low, np.asarray(up.center) - 0.5 * np.asarray(up.size))
 

@@ -291,7 +291,9 @@ def test_referent_metrics_and_uniform_weights_nll_with_a_proposer() -> None:
         mixture_nll(targets[0], (0.8, 0.2)),
         mixture_nll(targets[1], (0.8, 0.2)),
         float(
-            -broad_term(1.0, ROOM, Proposal(ScriptedProposer.parse, ())).logpdf(targets[2][None])[0]
+            -broad_term(1.0, ROOM, Proposal(ScriptedProposer.parse, ()), map_box(ROOM)).logpdf(
+                targets[2][None]
+            )[0]
         ),  # no anchor
     ]
     uniform = [mixture_nll(targets[0], (0.5, 0.5)), mixture_nll(targets[1], (0.5, 0.5)), nll[2]]

@@ -33,6 +33,7 @@ from app.grounding.box_relations import (
 )
 from app.grounding.builtin import BuiltinProposer
 from app.grounding.lexical import LexicalProposer
+from app.grounding.mixture import map_box
 from app.grounding.parsing import parse_utterance
 from app.grounding.referent_features import SceneBoxes, related_mask
 from app.grounding.relations import Relation
@@ -222,7 +223,7 @@ def test_a_region_name_is_read_one_way_whoever_parses(proposer: BuiltinProposer)
     lexical = LexicalProposer().propose(scene, utterance)
     assert [h.anchor_ids for h in lexical.hypotheses] == [("lr-table",)]
     assert regions_named(scene.regions, "game rooms") == {"lr"}
-    boxes, _ = broad_boxes(scene, parse_utterance(utterance, ("game_room",)))
+    boxes, _ = broad_boxes(scene, parse_utterance(utterance, ("game_room",)), map_box(scene))
     assert len(boxes) == 1 and np.allclose(boxes[0].low[:2], [-2.0, -2.0])
 
 

@@ -114,8 +114,9 @@ class LanguageSensor:
         """The served mixture of a proposal made already (the evaluation shares one among grounders)."""
         timings = {} if timings is None else timings
         beta = min(1.0, max(0.0, proposal.background))
+        box = map_box(scene_graph)  # the broad term's and the merged tail's
         if not proposal.hypotheses or beta >= 1.0:
-            prior = broad_term(1.0, scene_graph, proposal)
+            prior = broad_term(1.0, scene_graph, proposal, box)
             return Grounding(proposal, (), prior, timings, background=1.0, broad=prior)
         ranked = sorted(proposal.hypotheses, key=lambda h: -h.weight)
         grounded, rest = ranked[: self.max_grounded], ranked[self.max_grounded :]
@@ -125,7 +126,6 @@ class LanguageSensor:
                 for d, h in zip(self.grounder.ground(scene_graph, utterance, grounded), grounded, strict=True)
             ]
         served = list(grounded)
-        box = map_box(scene_graph)  # the broad term's and the merged tail's, measured once
         for merged, density in merged_tail(scene_graph, rest, box):
             served.append(merged)
             densities.append(density)
@@ -187,17 +187,16 @@ def widened(density: GaussianMixture, spread: float) -> GaussianMixture:
 
 
 def merged_tail(
-    scene_graph: SceneGraph, hypotheses: Sequence[Hypothesis], box: UniformBox | None = None
+    scene_graph: SceneGraph, hypotheses: Sequence[Hypothesis], box: UniformBox
 ) -> list[tuple[Hypothesis, GaussianMixture]]:
     """One summarising hypothesis and one broad Gaussian per region for the hypotheses not grounded one by
     one: each hypothesis stands for a rough Gaussian at its anchors' centre (sigma = half extent + 0.5 m
     per axis; the whole map's box for a region hypothesis), and the region's Gaussian is their
-    weight-averaged moment match, its weight their sum. `box`: the map's (`map_box`), if measured already."""
+    weight-averaged moment match, its weight their sum. `box`: the map's (`map_box`)."""
     by_region: dict[str | None, list[Hypothesis]] = defaultdict(list)
     for h in hypotheses:
         by_region[h.region_id].append(h)
     out = []
-    box = map_box(scene_graph) if box is None else box
     for region_id, group in by_region.items():
         weights = np.array([h.weight for h in group])
         means, covs = [], []
@@ -224,29 +223,23 @@ def merged_tail(
     return out
 
 
-def broad_term(
-    beta: float, scene_graph: SceneGraph, proposal: Proposal, box: UniformBox | None = None
-) -> GaussianMixture:
+def broad_term(beta: float, scene_graph: SceneGraph, proposal: Proposal, box: UniformBox) -> GaussianMixture:
     """The broad term normalised, (beta_min U(map) + (beta - beta_min) B) / beta (module docstring); `box`
-    is the map's (`map_box`), if measured already."""
+    is the map's (`map_box`)."""
     floor = min(MIN_BACKGROUND_WEIGHT, beta)
-    box = map_box(scene_graph) if box is None else box
     uniform = GaussianMixture.from_components([], [], boxes=[box], box_weights=[1.0])
-    broad = broad_density(scene_graph, proposal.parse, proposal.avoid, box)
+    broad = broad_density(scene_graph, proposal.parse, box, proposal.avoid)
     return GaussianMixture.combine([floor, beta - floor], [uniform, broad])
 
 
 def broad_density(
-    scene_graph: SceneGraph,
-    parse: UtteranceParse,
-    avoid: Sequence[UniformBox] = (),
-    box: UniformBox | None = None,
+    scene_graph: SceneGraph, parse: UtteranceParse, box: UniformBox, avoid: Sequence[UniformBox] = ()
 ) -> GaussianMixture:
     """The broad density B: uniform over what the utterance allows (`broad_boxes`), with a share
     `WIDE_SHARE` on one wide Gaussian about the map (sigma = half the map box's side per axis), so that
-    places just outside the mapped objects' box (a partly explored map) keep some mass. `box`: the map's."""
-    box = map_box(scene_graph) if box is None else box
-    boxes, weights = broad_boxes(scene_graph, parse, avoid, box)
+    places just outside the mapped objects' box (a partly explored map) keep some mass. `box`: the map's
+    (`map_box`)."""
+    boxes, weights = broad_boxes(scene_graph, parse, box, avoid)
     wide = Gaussian(box.center, np.diag((0.5 * box.size) ** 2))
     return GaussianMixture.from_components(
         [WIDE_SHARE], [wide], boxes=boxes, box_weights=(1.0 - WIDE_SHARE) * weights
@@ -254,14 +247,11 @@ def broad_density(
 
 
 def broad_boxes(
-    scene_graph: SceneGraph,
-    parse: UtteranceParse,
-    avoid: Sequence[UniformBox] = (),
-    box: UniformBox | None = None,
+    scene_graph: SceneGraph, parse: UtteranceParse, box: UniformBox, avoid: Sequence[UniformBox] = ()
 ) -> tuple[list[UniformBox], np.ndarray]:
     """The uniform part of B as boxes with weights summing to one: the mentioned regions (equal shares),
     else the map's box minus the `avoid` boxes (shares by volume, so it is uniform on what is left), else
-    the map's box. `box`: the map's, if measured already."""
+    the map's box `box` (`map_box`)."""
     region_ids = regions_named(scene_graph.regions, parse.region_phrase)
     if region_ids:
         boxes = [
@@ -273,7 +263,6 @@ def broad_boxes(
             if r.id in region_ids
         ]
         return boxes, np.full(len(boxes), 1.0 / len(boxes))
-    box = map_box(scene_graph) if box is None else box
     pieces = [box]
     for hole in avoid:
         pieces = [part for piece in pieces for part in subtract(piece, hole)]

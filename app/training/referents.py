@@ -88,7 +88,8 @@ def prepare_case(
         for h in range(len(found.keys))
     ]
     y = np.asarray(case.target.position, dtype=np.float64)
-    log_broad = float(broad_density(case.scene_graph, parse, found.avoid).logpdf(y[None])[0])
+    box = map_box(case.scene_graph)
+    log_broad = float(broad_density(case.scene_graph, parse, box, found.avoid).logpdf(y[None])[0])
     # Under a negation the region reading is served as the broad density B itself (`BuiltinProposer.propose`
     # moves its weight into beta, which is the same mixture): its row scores log B(y).
     as_broad = [bool(found.avoid) and not found.anchors[h] for h in range(len(hypotheses))]
@@ -99,7 +100,6 @@ def prepare_case(
         density[h] = density_terms(d.weights, d.means, d.covariances, y)
     for h in np.flatnonzero(as_broad).tolist():
         density[h] = fixed_density_terms(log_broad)
-    box = map_box(case.scene_graph)
     inside = bool(box.contains(y[None])[0])
     correct = None
     if case.hypotheses:
