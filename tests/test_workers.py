@@ -3,6 +3,7 @@ cross the process boundary intact, and a pool that recovers from a dead worker."
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 from collections.abc import Iterator
@@ -96,12 +97,46 @@ def test_a_killed_worker_costs_one_503_then_a_new_pool_serves(
     pooled: TestClient, scene_graph_dict: dict
 ) -> None:
     workers = pooled.app.state.services.worker_processes  # type: ignore[attr-defined]
-    pool = workers._current_pool()
-    (pid,) = list(pool._processes)  # the pool's one worker
+    (pid,) = workers.pids()  # the pool's one worker
     os.kill(pid, signal.SIGKILL)
     statuses = [_ground(pooled, scene_graph_dict, "the bag is on the desk").status_code for _ in range(2)]
     assert statuses == [503, 200], statuses
-    assert workers._current_pool() is not pool
+    (new,) = workers.pids()
+    assert new != pid
+
+
+def test_a_request_cancelled_while_its_worker_computes_leaves_the_worker_to_the_next_requests(
+    scene_graph_dict: dict,
+) -> None:
+    """One worker, a request cancelled after it was sent, then five at once: each gets its own answer (none
+    the cancelled one's, which the pool reads and drops), in turn, from the same worker."""
+    from app.scene_graph.model import SceneGraph
+
+    workers = WorkerProcesses(model_free_settings(), 1)
+    workers.start()
+    scene = SceneGraph.model_validate(scene_graph_dict)
+    targets = ["mug", "book", "phone", "key", "sock"]
+
+    async def run() -> list[Any]:
+        cancelled = asyncio.create_task(
+            workers.ground("geometric", "builtin", scene, "the bag is on the desk", None)
+        )
+        await asyncio.sleep(0.001)  # written to the worker
+        cancelled.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await cancelled
+        return await asyncio.gather(
+            *(workers.ground("geometric", "builtin", scene, f"the {t} is on the desk", None) for t in targets)
+        )
+
+    try:
+        (pid,) = workers.pids()
+        groundings = asyncio.run(run())
+        assert [g.proposal.parse.target for g in groundings] == targets
+        assert workers.pids() == [pid]
+    finally:
+        workers.close()
+    assert workers.pids() == []
 
 
 def test_a_request_process_with_workers_describes_the_models_from_their_files_as_loaded_ones_do() -> None:
