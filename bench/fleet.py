@@ -42,7 +42,7 @@ import numpy as np
 
 from app.client import VLMapClient
 from app.sessions.batch import encode_msgpack_batch
-from app.sim.service import start_service, wait_ready
+from app.sim.service import process_cpu_seconds, start_service, wait_ready
 from tests.harness import RedisServer
 
 TP, FP = 0.51, 0.5
@@ -306,15 +306,6 @@ def client_disconnects_mid_upload(url: str) -> None:
         sock.sendall(head.encode() + b"\x00" * 1024)
 
 
-def cpu_seconds(pid: int | None = None) -> float:
-    """User + system CPU time of a process so far (this one when pid is None), seconds (Linux)."""
-    if pid is None:
-        times = os.times()
-        return times.user + times.system
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
 def worker_pids(parent: int) -> list[int]:
     """A replica's worker processes: its children that hold models (Linux; not the small resource tracker)."""
     found = []
@@ -408,11 +399,13 @@ def cpu_per_request(
 def cpu_shares(pids: dict[str, int | None], run: Any, seconds: float) -> dict[str, float]:
     """Run `run()` and return how many cores each process kept busy on average meanwhile, and the shares of
     the machine's CPU time that were idle and stolen by the hypervisor (a virtual machine's neighbours)."""
-    before = {name: cpu_seconds(pid) for name, pid in pids.items()}
+    before = {name: process_cpu_seconds(pid) for name, pid in pids.items()}
     machine = machine_times()
     run()
     spent = machine_times() - machine
-    shares = {name: round((cpu_seconds(pid) - before[name]) / seconds, 2) for name, pid in pids.items()}
+    shares = {
+        name: round((process_cpu_seconds(pid) - before[name]) / seconds, 2) for name, pid in pids.items()
+    }
     total = max(1, int(spent.sum()))
     return shares | {"machine idle": round(spent[3] / total, 2), "machine stolen": round(spent[7] / total, 2)}
 

@@ -22,7 +22,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from app.sim.service import running_service
+from app.sim.service import cpu_seconds, process_cpu_seconds, running_service_process
 from app.vocabulary import object_nouns
 
 SCENES = Path(__file__).resolve().parent.parent / "tests" / "resources" / "scenes"
@@ -90,11 +90,17 @@ def measure(
     n: int,
     warmup: int,
     new: NewUtterances | None = None,
+    service_pid: int | None = None,
 ) -> dict[str, Any]:
     """Latency percentiles of `n` requests after `warmup`; with `new`, every measured request's utterance
-    comes from it (the warm-up's repeat `UTTERANCES`)."""
+    comes from it (the warm-up's repeat `UTTERANCES`). With the service's pid, also the CPU time per
+    measured request of its request process and of its grounding workers (ms): a measure of work done that
+    the host's drift moves far less than latency."""
     total, proposer, grounding = [], [], []
+    own = workers = float("nan")
     for i in range(warmup + n):
+        if i == warmup and service_pid is not None:
+            own, workers = process_cpu_seconds(service_pid), cpu_seconds(service_pid)
         utterance = UTTERANCES[i % len(UTTERANCES)]
         if new is not None and i >= warmup:
             utterance = next(new)
@@ -108,11 +114,16 @@ def measure(
             total.append(elapsed)
             proposer.append(timings.get("proposer", 0.0))
             grounding.append(timings.get("grounder", 0.0))
+    if service_pid is not None:
+        own = process_cpu_seconds(service_pid) - own
+        workers = cpu_seconds(service_pid) - workers - own
     return {
         "p50": float(np.percentile(total, 50)),
         "p99": float(np.percentile(total, 99)),
         "proposer_p50": float(np.percentile(proposer, 50)),
         "grounder_p50": float(np.percentile(grounding, 50)),
+        "request_process_cpu_ms": 1000.0 * own / n,
+        "workers_cpu_ms": 1000.0 * workers / n,
     }
 
 
@@ -134,7 +145,7 @@ def main() -> None:
     env = {"VLMAP_RATE_LIMIT_PER_S": "0"}
     if (Path(__file__).resolve().parent.parent / "models" / "lsm" / "model.safetensors").is_file():
         env["VLMAP_GROUNDERS"] = '["lsm", "geometric"]'
-    with running_service(env) as url, httpx.Client(base_url=url, timeout=30.0) as client:
+    with running_service_process(env) as (proc, url), httpx.Client(base_url=url, timeout=30.0) as client:
         models = client.get("/v1/models").json()["models"]
         grounders = [m["name"] for m in models if m["role"] == "grounder" and m["name"] != "fixed"]
         proposer = next(m["name"] for m in models if m["role"] == "proposer")
@@ -147,16 +158,18 @@ def main() -> None:
             f"1-min load before: {os.getloadavg()[0]:.1f}"
         )
         print(
-            "| scene | grounder | utterances | p50 (ms) | p99 (ms) | proposer p50 (ms) | grounder p50 (ms) |"
+            "| scene | grounder | utterances | p50 (ms) | p99 (ms) | proposer p50 (ms) | grounder p50 (ms) "
+            "| CPU per request: request process / workers (ms) |"
         )
-        print("|---|---|---|---|---|---|---|")
+        print("|---|---|---|---|---|---|---|---|")
         for label, scene in scenes.items():
             for grounder in grounders:
                 for series, n, source in (("repeated", args.requests, None), ("new", args.new_requests, new)):
-                    row = measure(client, scene, grounder, n, args.warmup, source)
+                    row = measure(client, scene, grounder, n, args.warmup, source, proc.pid)
                     print(
                         f"| {label} | {grounder} | {series} | {row['p50']:.2f} | {row['p99']:.2f} | "
-                        f"{row['proposer_p50']:.2f} | {row['grounder_p50']:.2f} |"
+                        f"{row['proposer_p50']:.2f} | {row['grounder_p50']:.2f} | "
+                        f"{row['request_process_cpu_ms']:.2f} / {row['workers_cpu_ms']:.2f} |"
                     )
 
 

@@ -9,8 +9,8 @@ on the request process's threads: they wait on the network, not the CPU.
 
 Each worker is one process at the end of one pipe, read by the event loop (`add_reader`): a request is one
 write and one read on the loop's own thread. (A `ProcessPoolExecutor` moves each call and each answer
-through two threads of its own, whose hand-offs of the interpreter lock cost the loop about a millisecond
-per grounding on this project's two cores; docs/performance.md.)
+through threads of its own, whose hand-offs of the interpreter lock the loop waits on while it serves HTTP;
+docs/performance.md has the measurements.)
 """
 
 from __future__ import annotations

@@ -45,17 +45,30 @@ STALL_S = 30.0
 MAX_START_S = 900.0
 
 
+def process_cpu_seconds(pid: int | None = None) -> float:
+    """CPU time (user + system, seconds) of one process so far, this one when `pid` is None; 0 once it is
+    gone. Linux /proc."""
+    if pid is None:
+        times = os.times()
+        return times.user + times.system
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:  # exited
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def cpu_seconds(pid: int) -> float:
     """CPU time (user + system, seconds) of a process and of its live children (the grounding workers);
     0 once it is gone. Linux /proc."""
-    total, tick = 0.0, os.sysconf("SC_CLK_TCK")
+    total = process_cpu_seconds(pid)
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
+            parent = int(stat.read_text().rsplit(")", 1)[1].split()[1])
         except OSError:  # exited meanwhile
             continue
-        if int(stat.parent.name) == pid or int(fields[1]) == pid:  # fields[1]: the parent's pid
-            total += (int(fields[11]) + int(fields[12])) / tick
+        if parent == pid:
+            total += process_cpu_seconds(int(stat.parent.name))
     return total
 
 
@@ -105,10 +118,19 @@ MODEL_FREE_ENV = {
 @contextmanager
 def running_service(env: dict[str, str] | None = None, timeout_s: float = MAX_START_S) -> Iterator[str]:
     """Yield the base URL of a ready `vlmap serve` process; stop it afterwards."""
+    with running_service_process(env, timeout_s) as (_, url):
+        yield url
+
+
+@contextmanager
+def running_service_process(
+    env: dict[str, str] | None = None, timeout_s: float = MAX_START_S
+) -> Iterator[tuple[subprocess.Popen[bytes], str]]:
+    """`running_service`, yielding the process too (to measure its CPU time)."""
     proc, url = start_service(env)
     try:
         wait_ready(url, proc, timeout_s=timeout_s)
-        yield url
+        yield proc, url
     finally:
         proc.terminate()
         try:
