@@ -218,6 +218,23 @@ def test_several_scenes_files_are_pooled_then_shuffled() -> None:
     assert [e.episode_id for e in load_episodes([CASES, LAYOUT], seed=3)] == expected
 
 
+def test_max_target_size_keeps_the_episodes_of_small_targets_in_the_same_seeded_order() -> None:
+    everything = load_episodes([CASES, LAYOUT], seed=3)
+    limit = float(np.median([max(e.target.size) for e in everything]))
+    small = [e.episode_id for e in everything if max(e.target.size) <= limit]
+    raw = [e for e in [*episodes_from_cases(CASES)] if max(e.target.size) <= limit]
+    raw += [
+        episode
+        for s in load_layout_scenes(LAYOUT)
+        for t in s.candidate_target_ids
+        if max((episode := s.episode(t)).target.size) <= limit
+    ]
+    assert 0 < len(small) < len(everything)
+    expected = [raw[k].episode_id for k in np.random.default_rng(3).permutation(len(raw))]
+    assert [e.episode_id for e in load_episodes([CASES, LAYOUT], seed=3, max_target_size=limit)] == expected
+    assert sorted(expected) == sorted(small)
+
+
 def test_perception_models_share_the_trajectory_not_the_labels() -> None:
     episode = load_episodes(CASES)[0]
     ideal = prepare_episode(episode, SimConfig(n_steps=6, perception="ideal"))
@@ -499,4 +516,6 @@ def test_sim_command_refuses_what_it_cannot_run(
     assert "needs trained weights in" in capsys.readouterr().err
     assert vlmap_main([*cases, "--methods", "oracle"]) == 2
     assert "unknown method 'oracle'" in capsys.readouterr().err
+    assert vlmap_main([*cases, "--methods", "vision-only", "--max-target-size", "0.001"]) == 2
+    assert "holds no episode with a target of at most 0.001 m" in capsys.readouterr().err
     assert not (tmp_path / "metrics.json").exists()

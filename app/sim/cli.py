@@ -60,6 +60,14 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     )
     parser.add_argument("--seed", type=int, default=0, help="episode order, trajectories and label noise")
     parser.add_argument("--source", default=None, help="only episodes of this source (scannet, ai2thor, ...)")
+    parser.add_argument(
+        "--max-target-size",
+        type=float,
+        default=None,
+        metavar="M",
+        help="only episodes whose target's largest side is at most M metres (the small objects a robot is "
+        "sent to find, which a map would not already hold)",
+    )
     parser.add_argument("--url", default=None, help="a running service (default: start one on loopback)")
     parser.add_argument(
         "--api-key", default=os.environ.get("VLMAP_API_KEY"), help="bearer key (default: $VLMAP_API_KEY)"
@@ -193,10 +201,12 @@ def run(args: argparse.Namespace) -> int:
             min_free_floor_m2=args.min_free_floor,
             n_checkpoints=args.checkpoints,
         )
-        episodes = load_episodes(args.scenes, args.source, args.seed)
+        episodes = load_episodes(args.scenes, args.source, args.seed, args.max_target_size)
         scenes = " ".join(str(p) for p in args.scenes)
         if not episodes:
             msg = f"{scenes} holds no episode" + (f" of source {args.source!r}" if args.source else "")
+            if args.max_target_size is not None:
+                msg += f" with a target of at most {args.max_target_size:g} m"
             raise SimError(msg)
         if args.measure_rates:
             return measure_rates(episodes, args.episodes, config, args.out)

@@ -110,10 +110,14 @@ def needed_parts(methods: Sequence[str]) -> tuple[set[str], set[str]]:
 
 
 def load_episodes(
-    path: str | Path | Sequence[str | Path], source: str | None = None, seed: int = 0
+    path: str | Path | Sequence[str | Path],
+    source: str | None = None,
+    seed: int = 0,
+    max_target_size: float | None = None,
 ) -> list[Episode]:
     """Every episode a scenes path (or several, read in the order given) holds, in a seeded random order;
-    only those of `source` when given.
+    only those of `source` when given, and only those whose target's largest side is at most
+    `max_target_size` metres when given.
 
     - a folder: VLA-3D scenes (one episode per target candidate, no utterance);
     - a JSONL file of grounding cases (`app.data.cases`; lines with "case_id" and "utterance"): one episode
@@ -127,6 +131,8 @@ def load_episodes(
         episodes = _episodes_of(Path(path))
     if source is not None:
         episodes = [e for e in episodes if e.source == source]
+    if max_target_size is not None:
+        episodes = [e for e in episodes if max(e.target.size) <= max_target_size]
     order = np.random.default_rng(seed).permutation(len(episodes))
     return [episodes[k] for k in order]
 
