@@ -118,9 +118,10 @@ class _Worker:
         reply: tuple[bool, Any] = pickle.loads(self.conn.recv_bytes())
         return reply
 
-    def send(self, arguments: tuple[Any, ...]) -> asyncio.Future[bytes]:
-        """Write one request; the future gets the answer's bytes when the loop sees them arrive (or the
-        error that reading them raised: EOFError when the worker died)."""
+    def send(self, arguments: tuple[Any, ...] | None) -> asyncio.Future[bytes]:
+        """Write one request (None: "are you ready?"); the future gets the answer's bytes when the loop sees
+        them arrive (or the error that reading them raised: EOFError when the worker died). Callers await it
+        shielded: a cancelled request must not cancel the read of its worker's answer."""
         loop = asyncio.get_running_loop()
         answer: asyncio.Future[bytes] = loop.create_future()
         fd = self.conn.fileno()
@@ -234,10 +235,26 @@ class WorkerProcesses:
                     self._give_back(waiter.result())
                 raise
         if slot is None:
-            slot = _Worker(self.settings)  # it loads the models while its pipe holds this request
-            with self._lock:
-                self._all.append(slot)
+            slot = await self._new_worker()
         return slot
+
+    async def _new_worker(self) -> _Worker:
+        """A new process for a dead worker's slot, once it has loaded the models: a request larger than the
+        pipe's buffer, written at once, would hold the loop until then."""
+        worker = _Worker(self.settings)
+        with self._lock:
+            self._all.append(worker)
+        ready = worker.send(None)
+        try:
+            await asyncio.shield(ready)
+        except (EOFError, OSError) as exc:
+            self._replace(worker)
+            msg = "a new grounding worker exited while loading the models"
+            raise ModelUnavailable(msg) from exc
+        except asyncio.CancelledError:  # handed on once it has answered
+            ready.add_done_callback(lambda done: self._finished(worker, done))
+            raise
+        return worker
 
     def _finished(self, worker: _Worker, answer: asyncio.Future[bytes]) -> None:
         """The worker's answer was read (or the worker died): hand the worker, or its slot, on."""
