@@ -139,6 +139,37 @@ def test_a_request_cancelled_while_its_worker_computes_leaves_the_worker_to_the_
     assert workers.pids() == []
 
 
+def test_a_worker_dying_while_it_holds_a_request_fails_that_request_alone(scene_graph_dict: dict) -> None:
+    """The worker is stopped (SIGSTOP) before the request reaches it and killed once the request is in its
+    pipe: that request gets `ModelUnavailable`; the next one waits for a new worker to load and is served."""
+    from app.errors import ModelUnavailable
+    from app.scene_graph.model import SceneGraph
+
+    workers = WorkerProcesses(model_free_settings(), 1)
+    workers.start()
+    scene = SceneGraph.model_validate(scene_graph_dict)
+    (pid,) = workers.pids()
+
+    async def run() -> Any:
+        os.kill(pid, signal.SIGSTOP)
+        held = asyncio.create_task(
+            workers.ground("geometric", "builtin", scene, "the mug is on the desk", None)
+        )
+        await asyncio.sleep(0.05)  # written into the stopped worker's pipe
+        os.kill(pid, signal.SIGKILL)
+        with pytest.raises(ModelUnavailable, match="worker process died"):
+            await held
+        return await workers.ground("geometric", "builtin", scene, "the book is on the desk", None)
+
+    try:
+        grounding = asyncio.run(run())
+        assert grounding.proposal.parse.target == "book"
+        (new,) = workers.pids()
+        assert new != pid
+    finally:
+        workers.close()
+
+
 def test_a_request_process_with_workers_describes_the_models_from_their_files_as_loaded_ones_do() -> None:
     """With grounding workers the request process loads no model (`WorkerServed`); what /v1/models says of
     the LSM and the built-in proposer is what the loaded models say of themselves."""
