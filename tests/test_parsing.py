@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from app.data.templates import LABEL_SYNONYMS, RELATION_PHRASES, render_utterance
-from app.grounding.parsing import parse_utterance
+from app.grounding.parsing import parse_utterance, split_attributes
 from app.grounding.relations import Relation
 
 REGIONS = ("kitchen", "bedroom", "living room")
@@ -244,6 +244,48 @@ def test_view_dependent_words_are_marked(utterance: str) -> None:
     parse = parse_utterance(utterance)
     assert parse.view_dependent
     assert any(m.view_dependent for m in parse.anchors)
+
+
+@pytest.mark.parametrize(
+    ("utterance", "target", "viewpoint"),
+    [
+        (
+            "If you face the whiteboard with writing, the bench is the one on the right of the table.",
+            "bench",
+            "whiteboard",
+        ),
+        ("When standing by the sink, the towel is on the left", "towel", "sink"),
+        ("With your back to the door, it is the window directly opposite you", "window", "door"),
+    ],
+)
+def test_the_objects_of_a_viewpoint_clause_are_view_dependent_anchors_not_the_target(
+    utterance: str, target: str, viewpoint: str
+) -> None:
+    parse = parse_utterance(utterance)
+    assert split_attributes(parse.target)[1] == target
+    seen_from = next(m for m in parse.mentions if m.noun == viewpoint)
+    assert seen_from.role == "anchor" and seen_from.view_dependent
+    assert parse.view_dependent
+
+
+@pytest.mark.parametrize(
+    ("utterance", "noun"),
+    [
+        ("When facing the windows, the one on the left.", "window"),
+        ("Facing the row of shoes, it is the rightmost pair.", "shoe"),
+    ],
+)
+def test_a_viewpoint_clause_names_the_target_when_nothing_else_does(utterance: str, noun: str) -> None:
+    parse = parse_utterance(utterance)
+    assert parse.mentions[next(k for k, m in enumerate(parse.mentions) if m.role == "target")].noun == noun
+    assert not any(m.noun == noun for m in parse.anchors)
+
+
+def test_looking_for_is_a_search_not_a_viewpoint() -> None:
+    assert (
+        split_attributes(parse_utterance("Looking for a blue couch, next to it is a table").target)[1]
+        == "couch"
+    )
 
 
 def test_a_view_independent_utterance_is_not_view_dependent() -> None:

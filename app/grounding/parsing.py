@@ -21,7 +21,10 @@ phrases between them, and says how each mention constrains the target:
    of that mention ("the cup is on the table next to the tv": the tv says which table);
 5. "not", "n't", "never", "without" before a relation phrase negate it; left/right/front/behind words (or a
    viewpoint: "when facing the door") mark the relations of that clause view-dependent; "between A and B"
-   pairs two anchors, "in the middle of A and B" too;
+   pairs two anchors, "in the middle of A and B" too. The objects of a clause that opens a sentence with
+   a viewpoint ("if you face the whiteboard, the bench is ...", "when facing the windows, the one on the
+   left") are view-dependent anchors, not the target, unless nothing else names one ("the one on the
+   left": a window);
 6. a mention after the target that no relation phrase governs ("the ball is halfway up the stairs") is an
    anchor with an unknown relation (near); a relation phrase followed by no known object name keeps the
    words it governs as an unknown mention ("next to the spaceship").
@@ -244,6 +247,12 @@ _CLAUSE_END = re.compile(
 _UNKNOWN_RELATION = re.compile(
     r"(?<=\s)(?:is|are|was|were|sits|lies|stands|hangs|rests)\s+"
     r"(?P<rel>[a-z']+(?:\s+[a-z']+){0,2}?)(?=\s+(?:the|a|an|my|our|your|his|her|their|this|that)\s)"
+)
+#: A clause that sets the speaker's viewpoint ("if you face the door", "when standing by the sink", "facing
+#: the windows", "with your back to the bed"), read only after the rest of its sentence (step 5).
+_VIEWPOINT_CLAUSE = re.compile(
+    r"^(?:if|when|whenever|while|as|once|assuming)\b"
+    r"|^(?:facing|standing|looking(?! for)|sitting|walking|entering|from|with (?:your|my|one's) back)\b"
 )
 _SENTENCE = re.compile(r"[.!?;:\n]+")
 _COMMA = re.compile(r"\s*,\s*")
@@ -512,6 +521,7 @@ def parse_utterance(
     target_index: int | None = None
     view_any = False
     english_words = total_words = 0
+    viewpoint: int | None = None  # the first mention of a viewpoint clause: the target if none is named
     for number, clauses in enumerate(_sentences(utterance)):
         sentence_view = any(w in _VIEW_WORDS for c in clauses for w in c)
         for clause_number, words in enumerate(clauses):
@@ -523,9 +533,29 @@ def parse_utterance(
             english_words += sum(1 for w in words if w in _FUNCTION_WORDS or lemmas(w) in lexicon)
             items = _clause_items(tokens, lexicon)
             view_any |= sentence_view
+            from_viewpoint = clause_number == 0 and len(clauses) > 1 and bool(_VIEWPOINT_CLAUSE.match(body))
+            view_any |= from_viewpoint
+            before = len(mentions)
             target_index = _read_clause(
-                tokens, items, mentions, target_index, number, sentence_view, fresh_clause=clause_number > 0
+                tokens,
+                items,
+                mentions,
+                target_index,
+                number,
+                sentence_view or from_viewpoint,
+                fresh_clause=clause_number > 0,
+                names_target=not from_viewpoint,
             )
+            if (
+                from_viewpoint and viewpoint is None
+            ):  # its first object name (not "row of" in "the row of shoes")
+                viewpoint = next((k for k in range(before, len(mentions)) if mentions[k].known), None)
+    if target_index is None and viewpoint is not None:  # "facing the windows, the one on the left": a window
+        said = mentions[viewpoint]
+        mentions[viewpoint] = Mention(
+            said.phrase, said.noun, said.attributes, "target", sentence=said.sentence
+        )
+        target_index = viewpoint
     english = total_words == 0 or english_words / total_words >= MIN_ENGLISH_SHARE
     return _primary(utterance, region_names, mentions, target_index, regions, view_any, english)
 
@@ -557,9 +587,11 @@ def _read_clause(
     sentence: int,
     view: bool,
     fresh_clause: bool,
+    names_target: bool = True,
 ) -> int | None:
     """Add the clause's mentions to `mentions` (step 3-6 of the module docstring); returns the target's
-    index (set by the first ungoverned mention when no target is known yet)."""
+    index (set by the first ungoverned mention when no target is known yet, unless the clause cannot name
+    it: a viewpoint clause's objects are view-dependent anchors)."""
     subject: int | None = None  # the index of the latest mention of this clause
     governed: set[int] = set()
     position = 0
@@ -571,11 +603,12 @@ def _read_clause(
                 subject = target_index  # the target named again ("... the black monitor sits on ...")
                 position += 1
                 continue
-            if target_index is None:
+            if target_index is None and names_target:
                 mentions.append(Mention(item.phrase, item.noun, item.attributes, "target", sentence=sentence))
                 target_index = index
             else:
-                # A noun after the target with no relation phrase: an anchor of an unknown relation.
+                # A noun after the target (or in a viewpoint clause) with no relation phrase: an anchor of an
+                # unknown relation.
                 mentions.append(
                     Mention(
                         item.phrase,
