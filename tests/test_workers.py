@@ -4,7 +4,9 @@ cross the process boundary intact, and a pool that recovers from a dead worker."
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
+import pickle
 import signal
 from collections.abc import Iterator
 from typing import Any
@@ -137,6 +139,51 @@ def test_a_request_cancelled_while_its_worker_computes_leaves_the_worker_to_the_
     finally:
         workers.close()
     assert workers.pids() == []
+
+
+def test_a_request_longer_than_the_pipes_buffer_reaches_a_slow_worker_under_uvloop(
+    scene_graph_dict: dict,
+) -> None:
+    """The service runs on uvloop, whose add_reader leaves the pipe non-blocking: a scene graph of 2,000
+    objects (hundreds of kB, where the pipe holds 64 kB) sent to a worker that is not reading yet (stopped
+    for 0.3 s) must still arrive whole (it failed part-way, EAGAIN, as a "dead worker" before)."""
+    import threading
+
+    import uvloop
+
+    from app.scene_graph.model import SceneGraph
+
+    objects = [
+        dict(
+            obj,
+            id=f"{k}-{obj['id']}",
+            center=[obj["center"][0] + 12.0 * k, *obj["center"][1:]],
+            region_id=None,
+        )
+        for k in range(34)
+        for obj in scene_graph_dict["objects"]
+    ][:2000]
+    big = SceneGraph.model_validate({"regions": [], "objects": objects})
+    assert len(pickle.dumps(big)) > 4 * 65536
+    small = SceneGraph.model_validate(scene_graph_dict)
+    workers = WorkerProcesses(model_free_settings(), 1)
+    workers.start()
+    (pid,) = workers.pids()
+
+    async def run() -> Any:
+        await workers.ground("geometric", "builtin", small, "the bag is on the desk", None)  # the reader set
+        os.kill(pid, signal.SIGSTOP)
+        threading.Timer(0.3, os.kill, (pid, signal.SIGCONT)).start()
+        return await workers.ground("geometric", "builtin", big, "the mug is on one of the tables", None)
+
+    try:
+        grounding = uvloop.run(run())
+        assert (grounding.proposal.parse.target, len(grounding.hypotheses)) == ("mug", 5)
+        assert workers.pids() == [pid]
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)
+        workers.close()
 
 
 def test_a_worker_dying_while_it_holds_a_request_fails_that_request_alone(scene_graph_dict: dict) -> None:

@@ -128,11 +128,15 @@ class _Worker:
 
         def readable() -> None:
             loop.remove_reader(fd)
+            os.set_blocking(fd, True)  # an answer longer than the pipe's buffer arrives in parts
             try:
                 answer.set_result(self.conn.recv_bytes())
             except (EOFError, OSError) as exc:
                 answer.set_exception(exc)
 
+        # uvloop's add_reader leaves the descriptor non-blocking, where a request longer than the pipe's
+        # buffer would fail part-way (EAGAIN): the worker is waiting for it, so a blocking write is brief.
+        os.set_blocking(fd, True)
         self.conn.send_bytes(pickle.dumps(arguments, protocol=pickle.HIGHEST_PROTOCOL))
         loop.add_reader(fd, readable)
         return answer
