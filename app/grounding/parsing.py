@@ -249,7 +249,8 @@ _UNKNOWN_RELATION = re.compile(
     r"(?P<rel>[a-z']+(?:\s+[a-z']+){0,2}?)(?=\s+(?:the|a|an|my|our|your|his|her|their|this|that)\s)"
 )
 #: A clause that sets the speaker's viewpoint ("if you face the door", "when standing by the sink", "facing
-#: the windows", "with your back to the bed"), read only after the rest of its sentence (step 5).
+#: the windows", "with your back to the bed"): its objects are view-dependent anchors, not the target
+#: (step 5).
 _VIEWPOINT_CLAUSE = re.compile(
     r"^(?:if|when|whenever|while|as|once|assuming)\b"
     r"|^(?:facing|standing|looking(?! for)|sitting|walking|entering|from|with (?:your|my|one's) back)\b"
@@ -546,9 +547,8 @@ def parse_utterance(
                 fresh_clause=clause_number > 0,
                 names_target=not from_viewpoint,
             )
-            if (
-                from_viewpoint and viewpoint is None
-            ):  # its first object name (not "row of" in "the row of shoes")
+            # The viewpoint clause's first object name ("shoes", not "row of", in "facing the row of shoes").
+            if from_viewpoint and viewpoint is None:
                 viewpoint = next((k for k in range(before, len(mentions)) if mentions[k].known), None)
     if target_index is None and viewpoint is not None:  # "facing the windows, the one on the left": a window
         said = mentions[viewpoint]
