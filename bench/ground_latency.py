@@ -97,10 +97,10 @@ def measure(
     measured request of its request process and of its grounding workers (ms): a measure of work done that
     the host's drift moves far less than latency."""
     total, proposer, grounding = [], [], []
-    own = workers = float("nan")
+    own_before = all_before = float("nan")
     for i in range(warmup + n):
         if i == warmup and service_pid is not None:
-            own, workers = process_cpu_seconds(service_pid), cpu_seconds(service_pid)
+            own_before, all_before = process_cpu_seconds(service_pid), cpu_seconds(service_pid)
         utterance = UTTERANCES[i % len(UTTERANCES)]
         if new is not None and i >= warmup:
             utterance = next(new)
@@ -114,9 +114,10 @@ def measure(
             total.append(elapsed)
             proposer.append(timings.get("proposer", 0.0))
             grounding.append(timings.get("grounder", 0.0))
+    own = workers = float("nan")
     if service_pid is not None:
-        own = process_cpu_seconds(service_pid) - own
-        workers = cpu_seconds(service_pid) - workers - own
+        own = process_cpu_seconds(service_pid) - own_before
+        workers = cpu_seconds(service_pid) - all_before - own
     return {
         "p50": float(np.percentile(total, 50)),
         "p99": float(np.percentile(total, 99)),

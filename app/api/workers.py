@@ -39,6 +39,8 @@ log = logging.getLogger("vlmap.workers")
 
 #: Proposers a worker loads (the LLM one needs the network and stays in the request process).
 LOCAL_PROPOSERS = frozenset({"builtin"})
+#: The 503's message when a worker's pipe breaks.
+DIED = "a worker process died; the next request starts a new one"
 #: How long `close` waits for a worker to exit after its pipe is closed before it is terminated (seconds).
 EXIT_WAIT_S = 5.0
 
@@ -212,14 +214,12 @@ class WorkerProcesses:
             answer = worker.send((grounder, proposer, scene_graph, utterance, given))
         except OSError as exc:  # the worker died while idle: its pipe is broken
             self._replace(worker)
-            msg = "a worker process died; the next request starts a new one"
-            raise ModelUnavailable(msg) from exc
+            raise ModelUnavailable(DIED) from exc
         answer.add_done_callback(lambda done: self._finished(worker, done))
         try:
             ok, value = pickle.loads(await asyncio.shield(answer))
         except (EOFError, OSError) as exc:
-            msg = "a worker process died; the next request starts a new one"
-            raise ModelUnavailable(msg) from exc
+            raise ModelUnavailable(DIED) from exc
         if not ok:
             raise value
         assert isinstance(value, Grounding)

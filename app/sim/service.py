@@ -45,30 +45,36 @@ STALL_S = 30.0
 MAX_START_S = 900.0
 
 
+def _stat(path: Path) -> list[str] | None:
+    """The fields of a /proc/<pid>/stat after the command name (state, parent pid, ...), None once gone."""
+    try:
+        return path.read_text().rsplit(")", 1)[1].split()
+    except OSError:  # exited
+        return None
+
+
+def _cpu(fields: list[str]) -> float:
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime, in ticks
+
+
 def process_cpu_seconds(pid: int | None = None) -> float:
     """CPU time (user + system, seconds) of one process so far, this one when `pid` is None; 0 once it is
     gone. Linux /proc."""
     if pid is None:
         times = os.times()
         return times.user + times.system
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:  # exited
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    fields = _stat(Path(f"/proc/{pid}/stat"))
+    return 0.0 if fields is None else _cpu(fields)
 
 
 def cpu_seconds(pid: int) -> float:
     """CPU time (user + system, seconds) of a process and of its live children (the grounding workers);
     0 once it is gone. Linux /proc."""
-    total = process_cpu_seconds(pid)
+    total = 0.0
     for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            parent = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-        except OSError:  # exited meanwhile
-            continue
-        if parent == pid:
-            total += process_cpu_seconds(int(stat.parent.name))
+        fields = _stat(stat)
+        if fields is not None and (int(stat.parent.name) == pid or int(fields[1]) == pid):  # [1]: the parent
+            total += _cpu(fields)
     return total
 
 
