@@ -256,6 +256,19 @@ def test_view_dependent_words_are_marked(utterance: str) -> None:
         ),
         ("When standing by the sink, the towel is on the left", "towel", "sink"),
         ("With your back to the door, it is the window directly opposite you", "window", "door"),
+        # A viewpoint said as a sentence of its own, or without a comma before the description.
+        ("Face the window. The door you want is on the left.", "door", "window"),
+        (
+            "face the fridge and then move to the trash can on the ground in the left corner",
+            "trash can",
+            "fridge",
+        ),
+        (
+            "Facing the wall with the drawing the box you are looking for is the one on the right",
+            "box",
+            "wall",
+        ),
+        ("Stand facing the sinks. The towel is on the left.", "towel", "sink"),
     ],
 )
 def test_the_objects_of_a_viewpoint_clause_are_view_dependent_anchors_not_the_target(
@@ -273,12 +286,49 @@ def test_the_objects_of_a_viewpoint_clause_are_view_dependent_anchors_not_the_ta
     [
         ("When facing the windows, the one on the left.", "window"),
         ("Facing the row of shoes, it is the rightmost pair.", "shoe"),
+        (
+            "When standing in the middle of the room facing the windows the correct one is on the left.",
+            "window",
+        ),
+        ("Stand at the end of the bed. You want the one on the left.", "bed"),
     ],
 )
 def test_a_viewpoint_clause_names_the_target_when_nothing_else_does(utterance: str, noun: str) -> None:
     parse = parse_utterance(utterance)
     assert parse.mentions[next(k for k, m in enumerate(parse.mentions) if m.role == "target")].noun == noun
     assert not any(m.noun == noun for m in parse.anchors)
+
+
+def test_stand_is_an_object_unless_it_opens_a_viewpoint() -> None:
+    assert split_attributes(parse_utterance("the night stand is next to the bed").target)[1] == "night stand"
+    assert (
+        split_attributes(parse_utterance("Stand by the door. The lamp is on the left.").target)[1] == "lamp"
+    )
+
+
+@pytest.mark.parametrize(
+    ("utterance", "relation"),
+    [
+        ("the closest keyboard to the whiteboard", Relation.CLOSEST),
+        ("the farthest chair from the door", Relation.FARTHEST),
+        ("my keys are by the nearest lamp to the door", Relation.CLOSEST),
+        ("the chair is the closest one to the door", Relation.CLOSEST),
+    ],
+)
+def test_a_superlative_before_the_name_relates_the_name_to_what_follows(
+    utterance: str, relation: Relation
+) -> None:
+    parse = parse_utterance(utterance)
+    said = {m.noun: m for m in parse.mentions}
+    assert said["door" if "door" in said else "whiteboard"].relation is relation
+    if "keys" not in utterance:
+        assert split_attributes(parse.target)[1] in {"keyboard", "chair"}
+
+
+def test_a_superlative_towards_a_side_is_not_split() -> None:
+    parse = parse_utterance("the window is the farthest window to the right on the wall")
+    assert split_attributes(parse.target)[1] == "window"
+    assert not any(m.noun in {"to", "right"} for m in parse.mentions)
 
 
 def test_looking_for_is_a_search_not_a_viewpoint() -> None:

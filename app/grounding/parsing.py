@@ -15,6 +15,8 @@ phrases between them, and says how each mention constrains the target:
 3. the target is the first mention no relation phrase governs ("the chair closest to the door": the
    chair; "on the shelf there is a book": the book), or a pronoun ("it's under the sofa"); a later
    ungoverned mention of the target's class is the target named again ("... the black monitor sits on");
+   a superlative said before the name is read after it ("the closest chair to the door" as "the chair
+   closest to the door"), unless what follows is a side ("the farthest window to the right");
 4. each relation phrase relates its *subject*, the nearest mention before it in the same clause (the
    target when there is none, or after a comma), to the mentions that follow it ("A and B", "A or B"). A
    relation of the target makes its relata *anchors*; a relation of another mention makes them *qualifiers*
@@ -24,7 +26,9 @@ phrases between them, and says how each mention constrains the target:
    pairs two anchors, "in the middle of A and B" too. The objects of a clause that opens a sentence with
    a viewpoint ("if you face the whiteboard, the bench is ...", "when facing the windows, the one on the
    left") are view-dependent anchors, not the target, unless nothing else names one ("the one on the
-   left": a window);
+   left": a window). A viewpoint may be a sentence of its own ("Face the door. The table you want ...")
+   or end without a comma where the description starts ("... facing the windows the correct one is",
+   "face the fridge and then ...", "... the box you are looking for is ...");
 6. a mention after the target that no relation phrase governs ("the ball is halfway up the stairs") is an
    anchor with an unknown relation (near); a relation phrase followed by no known object name keeps the
    words it governs as an unknown mention ("next to the spaceship").
@@ -254,6 +258,26 @@ _UNKNOWN_RELATION = re.compile(
 _VIEWPOINT_CLAUSE = re.compile(
     r"^(?:if|when|whenever|while|as|once|assuming)\b"
     r"|^(?:facing|standing|looking(?! for)|sitting|walking|entering|from|with (?:your|my|one's) back)\b"
+    r"|^(?:staring|turn (?:around |and )?(?:to )?face|position yourself|sit (?:on|at|in|down)\b)"
+    r"|^face (?:the|a|an|both|all|two|three|four|towards?|away)\b"
+    r"|^stand (?:at|in|by|near|next|facing|so|with|on|between|behind|before|directly|from|up)\b"
+)
+#: The verb of an imperative viewpoint, which is not an object ("stand at the end of the bed").
+_VIEWPOINT_VERB = re.compile(r"^(?:stand|sit|face|staring)\s")
+#: Where a viewpoint said without a comma ends and the description starts: "when standing in the middle of
+#: the room facing the windows | the correct one is on the left", "face the fridge | and then ...".
+_VIEWPOINT_END = re.compile(
+    r"\s(?:and then|then|the (?:correct|wanted|target)|the right one|the one|it is|it's|this is|choose|"
+    r"select|pick|(?P<named>you want|you need|you're looking for|you are looking for))\s"
+)
+#: "the closest chair to the door": a superlative before the target's name, its relatum after to/from
+#: ("the chair closest to the door"); the name may be one to four words long, without a verb or a new phrase.
+_SPLIT_SUPERLATIVE = re.compile(
+    r"\b(?P<sup>closest|nearest|farthest|furthest)\s+"
+    r"(?P<name>(?:(?!(?:is|are|was|were|be|the|a|an|to|from|away|of|on|in|at|by|with|for|near|next|and|or|"
+    r"that|which|it|itself|back|closest|nearest|farthest|furthest)\s)[a-z'/-]+\s+){1,4}?)"
+    r"(?P<rel>(?:away\s+)?(?:to|from))\b"
+    r"(?!\s+(?:the\s+|your\s+|my\s+)?(?:right|left|back|rear|front|far|end|side|top|bottom|middle)\b)"
 )
 _SENTENCE = re.compile(r"[.!?;:\n]+")
 _COMMA = re.compile(r"\s*,\s*")
@@ -502,6 +526,33 @@ def _sentences(text: str) -> list[list[list[str]]]:
     return out
 
 
+def _split_viewpoint(clauses: list[list[str]]) -> list[list[str]]:
+    """The clauses with a viewpoint that opens the sentence without a comma split off its first clause
+    ("when standing by the door the correct one is on the left": "when standing by the door", "the correct
+    one is on the left"); "and then" after it is dropped."""
+    first = " ".join(clauses[0])
+    if not _VIEWPOINT_CLAUSE.match(_strip_lead_ins(first)):
+        return clauses
+    end = _VIEWPOINT_END.search(first)
+    if end is None:
+        return clauses
+    head, tail = first[: end.start()].split(), first[end.start() :].split()
+    if end.group("named"):  # "... the box you are looking for is ...": the box starts the description
+        start = next((k for k in range(len(head) - 1, max(len(head) - 5, -1), -1) if head[k] == "the"), None)
+        if start is not None:
+            head, tail = head[:start], head[start:] + tail
+    if len(head) < 3:
+        return clauses
+    while tail and tail[0] in ("and", "then"):
+        tail = tail[1:]
+    return [head, *([tail] if tail else []), *clauses[1:]]
+
+
+def _superlative_after_name(text: str) -> str:
+    """ "the closest chair to the door" as "the chair closest to the door" (`_SPLIT_SUPERLATIVE`)."""
+    return _SPLIT_SUPERLATIVE.sub(r"\g<name>\g<sup> \g<rel>", text)
+
+
 # --- the whole utterance ---
 
 
@@ -523,18 +574,22 @@ def parse_utterance(
     view_any = False
     english_words = total_words = 0
     viewpoint: int | None = None  # the first mention of a viewpoint clause: the target if none is named
-    for number, clauses in enumerate(_sentences(utterance)):
+    sentences = [_split_viewpoint(clauses) for clauses in _sentences(utterance)]
+    for number, clauses in enumerate(sentences):
         sentence_view = any(w in _VIEW_WORDS for c in clauses for w in c)
+        more = len(clauses) > 1 or number < len(sentences) - 1  # a viewpoint needs something after it
         for clause_number, words in enumerate(clauses):
             text, found = _take_regions(" ".join(words), region_names)
             regions += found
-            body = _strip_lead_ins(text) if clause_number == 0 else text
+            body = _superlative_after_name(_strip_lead_ins(text) if clause_number == 0 else text)
+            from_viewpoint = clause_number == 0 and more and bool(_VIEWPOINT_CLAUSE.match(body))
+            if from_viewpoint:
+                body = _VIEWPOINT_VERB.sub("", body, count=1)
             tokens = body.split()
             total_words += len(words)
             english_words += sum(1 for w in words if w in _FUNCTION_WORDS or lemmas(w) in lexicon)
             items = _clause_items(tokens, lexicon)
             view_any |= sentence_view
-            from_viewpoint = clause_number == 0 and len(clauses) > 1 and bool(_VIEWPOINT_CLAUSE.match(body))
             view_any |= from_viewpoint
             before = len(mentions)
             target_index = _read_clause(
@@ -752,7 +807,7 @@ def _fallback_target(utterance: str, region_names: tuple[str, ...]) -> str:
     """The first parser's target: the words before the first relation phrase, cleaned."""
     text = normalise(utterance)
     text, _ = _take_regions(text, region_names)
-    body = _strip_lead_ins(text)
+    body = _superlative_after_name(_strip_lead_ins(text))
     tokens = body.split()
     table, longest = _phrase_table(), _longest_phrase()
     for i in range(len(tokens)):
