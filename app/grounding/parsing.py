@@ -277,7 +277,7 @@ _SPLIT_SUPERLATIVE = re.compile(
     r"(?P<name>(?:(?!(?:is|are|was|were|be|the|a|an|to|from|away|of|on|in|at|by|with|for|near|next|and|or|"
     r"that|which|it|itself|back|closest|nearest|farthest|furthest)\s)[a-z'/-]+\s+){1,4}?)"
     r"(?P<rel>(?:away\s+)?(?:to|from))\b"
-    r"(?!\s+(?:the\s+|your\s+|my\s+)?(?:right|left|back|rear|front|far|end|side|top|bottom|middle)\b)"
+    r"(?!\s+(?:the\s+|your\s+|my\s+)?(?:right|left|back|rear|front|far)\b)"  # a direction, not a relatum
 )
 _SENTENCE = re.compile(r"[.!?;:\n]+")
 _COMMA = re.compile(r"\s*,\s*")
