@@ -92,8 +92,8 @@ class StoreOps:
     def head(self, session_id: str) -> SessionInfo:
         return self.run(self.store.head(session_id))
 
-    def scene_graph(self, session_id: str) -> SceneGraph:
-        return self.run(self.store.scene_graph(session_id))
+    def head_and_scene_graph(self, session_id: str) -> tuple[SessionInfo, SceneGraph]:
+        return self.run(self.store.head_and_scene_graph(session_id))
 
     def layers(self, session_id: str) -> BeliefState:
         """The belief layers and their version, of one consistent state."""

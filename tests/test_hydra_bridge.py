@@ -106,7 +106,7 @@ class Session:
         self.store, self.id = store, session_id
 
     def scene_graph(self) -> SceneGraph:
-        return asyncio.run(self.store.scene_graph(self.id))
+        return asyncio.run(self.store.head_and_scene_graph(self.id))[1]
 
     def version(self) -> int:
         return asyncio.run(self.store.head(self.id)).version

@@ -33,7 +33,7 @@ def normalised(client: TestClient, payload: bytes) -> dict[str, Any]:
 
 def stored(client: TestClient, session_id: str) -> SceneGraph:
     store = client.app.state.services.store  # type: ignore[attr-defined]
-    graph: SceneGraph = client.portal.call(store.scene_graph, session_id)
+    graph: SceneGraph = client.portal.call(store.head_and_scene_graph, session_id)[1]
     return graph
 
 

@@ -1164,16 +1164,17 @@ def test_head_and_scene_graph_follow_updates_and_deletion(store: Any) -> None:
     store.detect("peeked", [0.7], flat_idx=np.array([1]))
     store.utter("peeked", wide_mixture(np.random.default_rng(1)))
     assert peek("peeked") == ("robot-9", 2) == ("robot-9", store.get("peeked").version)
-    assert store.scene_graph("peeked") == SCENE
+    assert store.head_and_scene_graph("peeked") == (store.head("peeked"), SCENE)
     moved = SceneGraph.model_validate({**SCENE_DICT, "objects": SCENE_DICT["objects"][1:]})
     assert store.replace_scene_graph("peeked", moved) == 3
-    assert store.scene_graph("peeked") == moved and peek("peeked") == ("robot-9", 3)
+    info, scene_graph = store.head_and_scene_graph("peeked")
+    assert scene_graph == moved and (info.robot_id, info.version) == peek("peeked") == ("robot-9", 3)
     store.delete("peeked")
     for absent in ("peeked", "never-made"):
         with pytest.raises(NotFound):
             peek(absent)
         with pytest.raises(NotFound):
-            store.scene_graph(absent)
+            store.head_and_scene_graph(absent)
 
 
 def test_updates_on_one_event_loop_inline_or_not_match_the_reference_and_check_the_writer(store: Any) -> None:
@@ -1219,7 +1220,7 @@ def test_memory_head_of_an_expired_session_is_not_found() -> None:
     with pytest.raises(NotFound):
         store.head("brief")
     with pytest.raises(NotFound):
-        store.scene_graph("brief")
+        store.head_and_scene_graph("brief")
 
 
 def test_head_is_the_info_of_load_without_reading_the_layers(store: Any) -> None:
@@ -1246,6 +1247,11 @@ def test_head_is_the_info_of_load_without_reading_the_layers(store: Any) -> None
         info_commands = redis_commands(store, lambda: store.head("meta-only"), "meta-only")
         touched = [c for c in info_commands if "{meta-only}" in c]
         assert touched and all(":meta" in c and ":lang" not in c and ":vis" not in c for c in touched)
+        # What grounding an utterance reads: one command, on the meta hash, with the scene graph's field.
+        both = redis_commands(store, lambda: store.head_and_scene_graph("meta-only"), "meta-only")
+        touched = [c for c in both if "{meta-only}" in c]
+        assert len(touched) == 1 and "hmget" in touched[0].lower() and ":meta" in touched[0]
+        assert store.head_and_scene_graph("meta-only") == (info, SCENE)
         fresh = StoreOps(type(store.store)(store._url, prefix=store.prefix))  # no mirror: `load` reads it all
         assert any(":lang" in c for c in redis_commands(fresh, lambda: fresh.get("meta-only"), "meta-only"))
         fresh.close()

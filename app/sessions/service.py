@@ -319,8 +319,9 @@ class SessionService:
     ) -> PreparedUtterance:
         """Ground an utterance (`utterance`: its text) in the session's scene graph, once the caller may write
         the session."""
-        info = await self._writable(caller, session_id)
-        grounding, sensor = await ground(await self.store.scene_graph(session_id))
+        info, scene_graph = await self.store.head_and_scene_graph(session_id)
+        caller.require_write(info.robot_id)
+        grounding, sensor = await ground(scene_graph)
         fused, reason = utterance_verdict(info.target_label, grounding)
         return PreparedUtterance(info, grounding, sensor, fused, reason, utterance)
 
@@ -546,8 +547,9 @@ class SessionService:
 
     async def scene_graph(self, caller: Caller, session_id: str) -> SceneGraph:
         """The scene graph the session grounds utterances in (its latest replacement)."""
-        await self._readable(caller, session_id)
-        return await self.store.scene_graph(session_id)
+        info, scene_graph = await self.store.head_and_scene_graph(session_id)
+        caller.require_read(info.robot_id)
+        return scene_graph
 
     async def utterances(self, caller: Caller, session_id: str) -> UtteranceLog:
         """The utterance events among the session's retained events (its last `events_history`, of every

@@ -231,8 +231,9 @@ class SessionStore(Protocol):
         graph or layers: what access checks and ETags need. NotFound if absent or expired."""
         ...
 
-    async def scene_graph(self, session_id: str) -> SceneGraph:
-        """The session's current scene graph, without its layers."""
+    async def head_and_scene_graph(self, session_id: str) -> tuple[SessionInfo, SceneGraph]:
+        """`head` and the session's current scene graph, read together (one version's), without its layers:
+        what grounding an utterance needs."""
         ...
 
     async def load(self, session_id: str) -> Session:

@@ -565,8 +565,9 @@ class MemorySessionStore:
     async def head(self, session_id: str) -> SessionInfo:
         return self._head(session_id).session.info()
 
-    async def scene_graph(self, session_id: str) -> SceneGraph:
-        return self._head(session_id).session.scene_graph  # replaced whole, never changed in place
+    async def head_and_scene_graph(self, session_id: str) -> tuple[SessionInfo, SceneGraph]:
+        session = self._head(session_id).session
+        return session.info(), session.scene_graph  # replaced whole, never changed in place
 
     def _load(self, session_id: str) -> Session:
         with self._locked(session_id) as entry:
@@ -614,9 +615,7 @@ class MemorySessionStore:
             if tombstone is not None and idempotency is not None:
                 tombstone[1].check(idempotency, self._clock())
 
-    def _update_locked(
-        self, entry: _Entry, change: Change, idempotency: Idempotency | None
-    ) -> UpdateResult:
+    def _update_locked(self, entry: _Entry, change: Change, idempotency: Idempotency | None) -> UpdateResult:
         """Check the key, compute the delta, log it, then apply it (the session's lock is held)."""
         session = entry.session
         now = self._clock()

@@ -957,11 +957,15 @@ class RedisSessionStore:
             raise _not_found(session_id)
         return _info(session_id, _decode_static(static_raw), version, updated_at)
 
-    async def scene_graph(self, session_id: str) -> SceneGraph:
-        raw = await self._on_loop("hget", self._key(session_id, "meta"), "sg")
-        if raw is None:
+    async def head_and_scene_graph(self, session_id: str) -> tuple[SessionInfo, SceneGraph]:
+        fields = ["static", "version", "updated_at", "sg"]
+        static_raw, version, updated_at, raw = await self._on_loop(
+            "hmget", self._key(session_id, "meta"), fields
+        )
+        if static_raw is None or raw is None:
             raise _not_found(session_id)
-        return parse_scene_graph_json(bytes(raw))
+        info = _info(session_id, _decode_static(static_raw), version, updated_at)
+        return info, parse_scene_graph_json(bytes(raw))
 
     async def summary_get(self, session_id: str, version: int, options: str) -> dict[str, Any] | None:
         stored = await self._on_loop("hget", self._key(session_id, "summary"), options)
