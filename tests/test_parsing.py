@@ -331,6 +331,19 @@ def test_a_superlative_towards_a_side_is_not_split() -> None:
     assert not any(m.noun in {"to", "right"} for m in parse.mentions)
 
 
+@pytest.mark.parametrize(
+    ("utterance", "target"),
+    [
+        ("The can closest to the door.", "can"),
+        ("Facing the cans, the white can on the left.", "can"),
+        ("the small pink chair that can roll around", "chair"),
+        ("you can find my keys on the table", "keys"),
+    ],
+)
+def test_can_is_a_noun_after_a_determiner_or_an_attribute(utterance: str, target: str) -> None:
+    assert split_attributes(parse_utterance(utterance).target)[1] == target
+
+
 def test_looking_for_is_a_search_not_a_viewpoint() -> None:
     assert (
         split_attributes(parse_utterance("Looking for a blue couch, next to it is a table").target)[1]

@@ -239,6 +239,8 @@ _NOUN_PHRASE_GAP = (
 _NOT_MENTIONS = frozenset(
     {"corner", "object", "thing", "item", "can", "hanging", *(lemmas(w) for w in ROOM_WORDS)}
 )
+# Words before "can" that make it a noun ("the can", "the white can"; not "a chair that can roll").
+_BEFORE_A_NOUN = (_DETERMINER_WORDS - _words("that this")) | ATTRIBUTE_WORDS | _words("middle other")
 # Words after a relation phrase that name a side or a part of the view, not an object ("on the far left").
 _PLACE_WORDS = _words("far left right side top bottom end middle center centre corner front back edge way")
 # Leading words of the anchor text that belong to the relation ("farthest away from", "near to").
@@ -424,7 +426,8 @@ def _mention_spans(
                 continue
             name = " ".join(lemma[i:j])
             adjective = width == 1 and tokens[i] in _FILLERS and j < len(tokens) and tokens[j] in COLOR_WORDS
-            if name in lexicon and name not in _NOT_MENTIONS and not adjective:
+            named = name not in _NOT_MENTIONS or (name == "can" and i > 0 and tokens[i - 1] in _BEFORE_A_NOUN)
+            if name in lexicon and named and not adjective:
                 spans.append((i, j, name))
                 i = j
                 break
