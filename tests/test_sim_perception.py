@@ -23,6 +23,7 @@ from app.sim.perception import (
     propensities,
     recall,
     shape_similarity,
+    unmapped_propensity,
 )
 from app.sim.world import FREE, SemanticVoxelWorld
 
@@ -271,3 +272,86 @@ def test_rate_counts() -> None:
     assert summary["precision"] == 0.5 and summary["iou"] == pytest.approx(1 / 3)
     assert summary["target_frames"] == 1 and summary["target_frames_labelled_t_pct"] == 100.0
     assert RateCounts().summary()["tp"] is None
+
+
+# --- the target the map lacks (1') --------------------------------------------------------------------------
+
+
+def posterior_by_weighting(mu: float, rho: float, recalls: list[float], n: int = 2_000_000) -> np.ndarray:
+    """Slow reference for (1'): prior draws of (1) and their weights prod (1 - r_f theta)."""
+    theta = propensities(np.full(n, mu), rho, np.random.default_rng(123))
+    weight = np.ones(n)
+    for r in recalls:
+        weight *= 1.0 - r * theta
+    return np.stack([theta, weight])
+
+
+@pytest.mark.parametrize(
+    ("mu", "rho", "recalls"),
+    [(0.8, 0.5, [0.9, 0.9, 0.9]), (0.8, 0.2, [0.9] * 4), (0.6, 0.5, [0.3, 0.7, 0.1, 0.8] * 5)],
+)
+def test_unmapped_propensity_is_the_posterior_given_the_misses(
+    mu: float, rho: float, recalls: list[float]
+) -> None:
+    """The draws' mean and P(theta > 0.5) match the importance-weighted prior's within 4 standard errors."""
+    rng = np.random.default_rng(5)
+    n = 3000
+    draws = np.array([unmapped_propensity(mu, rho, np.array(recalls), rng) for _ in range(n)])
+    theta, weight = posterior_by_weighting(mu, rho, recalls)
+    mean = float((theta * weight).sum() / weight.sum())
+    assert mean < mu - 0.1  # the misses lower it
+    sd = math.sqrt(float((weight * (theta - mean) ** 2).sum() / weight.sum()))
+    assert abs(draws.mean() - mean) <= 4 * sd / math.sqrt(n) + 1e-3
+    high = float((weight * (theta > 0.5)).sum() / weight.sum())
+    assert within(float((draws > 0.5).mean()), high, n)
+
+
+def test_unmapped_propensity_edge_cases() -> None:
+    """No view: one draw of (1), the same draw; rho = 0 or a point-mass prior: theta = mu; rho = 1: the
+    Bernoulli posterior mu prod(1 - r) / (mu prod(1 - r) + 1 - mu)."""
+    a, b = np.random.default_rng(9), np.random.default_rng(9)
+    none = np.array([])
+    assert unmapped_propensity(0.8, 0.5, none, a) == float(propensities(np.array([0.8]), 0.5, b)[0])
+    assert unmapped_propensity(0.8, 0.0, np.array([0.9] * 5), a) == 0.8
+    assert unmapped_propensity(1.0, 0.5, np.array([0.9] * 5), a) == 1.0
+    rng = np.random.default_rng(3)
+    ones = np.mean([unmapped_propensity(0.8, 1.0, np.array([0.5, 0.5]), rng) for _ in range(4000)])
+    assert within(float(ones), 0.8 * 0.25 / (0.8 * 0.25 + 0.2), 4000)
+    with pytest.raises(InvalidInput, match="mapping_pass"):
+        PerceptionConfig(mapping_pass="earlier")
+
+
+def test_the_target_the_map_lacks_is_labelled_as_often_as_its_posterior_says() -> None:
+    """Over many episodes, after a mapping pass of 3 frames that show the target, the share of frames that
+    label it T is r(A) E[theta | missed in those frames] (1'), far below r(A) a; a mapped object of its class
+    keeps (1); with the mapping pass "none", or frames that do not show the target, nothing is redrawn."""
+    target = box("t", "backpack", (2.0, 0.0, 1.0), (0.4, 0.4, 0.4))
+    other = box("o", "backpack", (2.0, 1.2, 1.0), (0.4, 0.4, 0.4))
+    world, observation = scene([target, other])
+    away = Camera().observe(world, Pose(0.0, 0.0, 1.0, yaw=math.pi))  # shows neither
+    t, o = world.index_of("t"), world.index_of("o")
+    config = PerceptionConfig()
+    frames_t, frames_o = [], []
+    for seed in range(400):
+        seg = Segmenter(config, world, "backpack", BACKPACK, CameraConfig(), np.random.default_rng(seed))
+        old = Segmenter(config, world, "backpack", BACKPACK, CameraConfig(), np.random.default_rng(seed))
+        seg.miss_while_mapping(t, [observation, away, observation, observation], np.random.default_rng(seed))
+        assert seg.theta[o] == old.theta[o]  # the mapped look-alike of its class keeps (1)
+        for unchanged, frames in ((PerceptionConfig(mapping_pass="none"), [observation]), (config, [away])):
+            rng = np.random.default_rng(seed)
+            kept = Segmenter(unchanged, world, "backpack", BACKPACK, CameraConfig(), rng)
+            kept.miss_while_mapping(t, frames, np.random.default_rng(seed))
+            assert np.array_equal(kept.theta, old.theta)
+        frames_t.append(says_t_per_frame(seg, observation, t, 10, seed=seed))
+        frames_o.append(says_t_per_frame(seg, observation, o, 10, seed=seed))
+    codes, areas = seg.frame_objects(observation)
+    r_t = float(recall(float(areas[list(codes).index(t)]), config))
+    r_o = float(recall(float(areas[list(codes).index(o)]), config))
+    assert np.allclose(seg.view_recalls([observation, away, observation], t), [r_t, r_t])
+    theta, weight = posterior_by_weighting(config.accuracy, config.frame_correlation, [r_t] * 3)
+    expected_t = r_t * float((theta * weight).sum() / weight.sum())
+    got_t, got_o = float(np.mean(frames_t)), float(np.mean(frames_o))
+    # Frames of one episode are correlated: the standard error is that of 400 episodes, not 4000 frames.
+    assert abs(got_t - expected_t) <= 4 * math.sqrt(expected_t * (1 - expected_t) / 400)
+    assert abs(got_o - r_o * config.accuracy) <= 4 * math.sqrt(0.25 / 400)
+    assert got_t < got_o - 0.2

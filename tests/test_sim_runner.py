@@ -271,7 +271,12 @@ def test_frames_carry_the_observed_voxels_with_their_labels(perception: str) -> 
     """Without errors the label ids name the true class of each observed voxel of the service's grid."""
     episode = load_episodes(CASES)[0]
     flawless = PerceptionConfig(
-        max_recall=1.0, half_recall_area_px=1e-12, accuracy=1.0, lookalike_share=0.0, speckle=0.0
+        max_recall=1.0,
+        half_recall_area_px=1e-12,
+        accuracy=1.0,
+        lookalike_share=0.0,
+        speckle=0.0,
+        mapping_pass="none",
     )
     config = SimConfig(
         n_steps=5, perception=perception, noise=LabelNoise(tp=1.0, fp=0.0, confusion=0.0), segmenter=flawless
@@ -458,13 +463,16 @@ def test_sim_command_end_to_end(service_url: str, tmp_path: Path, capsys: pytest
     out = tmp_path / "run"
     args = ["sim", "--scenes", str(CASES), "--episodes", "2", "--steps", "8", "--seed", "0"]
     args += ["--methods", "vision-only,geometric,fixed", "--out", str(out), "--url", service_url]
-    assert vlmap_main([*args, "--no-progress"]) == 0
+    # A target put there after mapping: the fixture's only backpack-like object is the target, so with the
+    # default mapping pass it is seldom labelled and the precision below says little.
+    assert vlmap_main([*args, "--mapping-pass", "none", "--no-progress"]) == 0
     printed = capsys.readouterr().out
     assert "| Method | Mean IG (nats)" in printed
 
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["methods"] == ["vision-only", "geometric", "fixed"]
     assert doc["config"]["perception"] == "realistic"
+    assert doc["config"]["segmenter"]["mapping_pass"] == "none"
     told = PerceptionConfig().sensor_model
     assert doc["config"]["sensor_model"] == {"tp": pytest.approx(told[0]), "fp": pytest.approx(told[1])}
     assert doc["language"] == {"templated": {"cases": 1, "scannet": 1}}

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from app.sim.metrics import SUCCESS_MASS
-from app.sim.perception import PERCEPTION_MODELS, PerceptionConfig
+from app.sim.perception import MAPPING_PASSES, PERCEPTION_MODELS, PerceptionConfig
 from app.sim.runner import DEFAULT_METHODS, METHOD_OPTIONS
 
 if TYPE_CHECKING:
@@ -123,6 +123,14 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         "--speckle", type=float, default=default.speckle, help="scattered false-positive rate per voxel"
     )
     real.add_argument(
+        "--mapping-pass",
+        choices=MAPPING_PASSES,
+        default=default.mapping_pass,
+        help="why the map lacks the target: 'route', the robot mapped along the same route and its segmenter "
+        "never labelled the target where it saw it (its propensity drawn given those misses); 'none', the "
+        "target came after the map (the tables before this option)",
+    )
+    real.add_argument(
         "--misspecification",
         type=float,
         default=default.misspecification,
@@ -194,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
                 shape_scale=args.shape_scale,
                 frame_correlation=args.frame_correlation,
                 speckle=args.speckle,
+                mapping_pass=args.mapping_pass,
                 misspecification=args.misspecification,
                 true_rates=(args.true_rates[0], args.true_rates[1]),
             ),

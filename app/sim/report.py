@@ -114,9 +114,12 @@ def setting_line(document: dict[str, Any]) -> str:
     config, realised = document["config"], document["perception_realised"]
     told = config["sensor_model"]
     if config["perception"] == "realistic":
+        route = (config.get("segmenter") or {}).get("mapping_pass") == "route"
+        missed = "never labelled along the route while mapping" if route else "placed after mapping"
         perception = (
             "realistic perception (`app/sim/perception.py`: per-object, per-frame labels, recall by apparent "
-            f"size, look-alike false positives; the service told tp {told['tp']:.3f}, fp {told['fp']:.4f})"
+            f"size, look-alike false positives, the target {missed}; the service told "
+            f"tp {told['tp']:.3f}, fp {told['fp']:.4f})"
         )
     else:
         perception = (
@@ -127,6 +130,11 @@ def setting_line(document: dict[str, Any]) -> str:
             f"; the labels realised tp {realised['tp']:.3f}, fp {realised['fp']:.4f}, target-class precision "
             f"{realised['precision']:.2f}, IoU {realised['iou']:.2f}"
         )
+        if realised.get("target_frames_labelled_t_pct") is not None:
+            perception += (
+                f", the target labelled as its class in {realised['target_frames_labelled_t_pct']:.0f}% of "
+                "the frames it was in view"
+            )
     parts = []
     for language, by_source in document["language"].items():
         sources = ", ".join(f"{source} {n}" for source, n in by_source.items())

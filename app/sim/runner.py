@@ -271,9 +271,13 @@ def prepare_episode(
     target_key = class_key(episode.target.label)
     object_is_target_class = np.array([class_key(label) == target_key for label in world.labels], dtype=bool)
     id_is_target_class = np.array([class_key(name) == target_key for name in names], dtype=bool)
+    t0 = time.perf_counter()
+    seen_frames = [camera.observe(world, pose) for pose in poses]
+    t1 = time.perf_counter()
     segmenter = None
     if config.perception == "realistic":
-        # Drawn first from the noise stream: the objects' propensities, fixed for the episode.
+        # Drawn first from the noise stream: the objects' propensities, fixed for the episode; then the
+        # target's given that the mapping pass along this route never labelled it (1').
         segmenter = Segmenter(
             config.segmenter,
             world,
@@ -282,15 +286,12 @@ def prepare_episode(
             config.camera,
             noise_rng,
         )
+        segmenter.miss_while_mapping(world.index_of(episode.target.id), seen_frames, noise_rng)
         # The segmenter's label codes -> the label map's ids.
         id_of_code = np.array([id_of[str(n)] for n in segmenter.names], dtype=np.uint32)
     rates = RateCounts()
-    seconds = {"world": time.perf_counter() - started, "camera": 0.0, "noise": 0.0}
     frames = []
-    for pose in poses:
-        t0 = time.perf_counter()
-        seen = camera.observe(world, pose)
-        t1 = time.perf_counter()
+    for seen in seen_frames:
         if segmenter is None:
             noisy = config.noise.corrupt(
                 seen.labels, episode.target.label, noise_rng, vocabulary=world.labels
@@ -307,8 +308,7 @@ def prepare_episode(
         )
         voxels = np.stack(np.unravel_index(seen.flat_idx, grid.shape), axis=1).astype(np.int32)
         frames.append(Frame(voxels, label_ids, bool(is_target_voxel[seen.flat_idx].any())))
-        seconds["camera"] += t1 - t0
-        seconds["noise"] += time.perf_counter() - t1
+    seconds = {"world": t0 - started, "camera": t1 - t0, "noise": time.perf_counter() - t1}
     return PreparedEpisode(
         episode=episode,
         grid=grid,
