@@ -281,9 +281,9 @@ def unmapped_propensity(
         return float(propensities(np.array([mean]), correlation, rng)[0])
     if correlation <= 0.0 or mean <= 0.0 or mean >= 1.0:
         return float(np.clip(mean, 0.0, 1.0))
-    log_missed = float(np.sum(np.log1p(-np.minimum(r, 1.0 - 1e-12))))  # log prod (1 - r_f), theta = 1
     if correlation >= 1.0:
-        odds_one = mean * math.exp(log_missed) / (1.0 - mean)
+        missed_if_one = math.exp(float(np.sum(np.log1p(-np.minimum(r, 1.0 - 1e-12)))))  # prod (1 - r_f)
+        odds_one = mean * missed_if_one / (1.0 - mean)
         return float(rng.random() < odds_one / (1.0 + odds_one))
     batch = 4096
     for _ in range(10_000):
