@@ -120,7 +120,8 @@ def test_only_the_near_face_is_observed_and_free_space_before_it() -> None:
     assert all(int(v) in observed for v in on_axis[:20])  # x < 2.0
     assert not any(int(v) in observed for v in on_axis[21:])  # x > 2.1
     free = observation.owner == FREE
-    assert set(observation.labels[free]) == {FREE_LABEL} and set(observation.labels[~free]) <= {
+    labels = world.labels_of(observation.owner)
+    assert set(labels[free]) == {FREE_LABEL} and set(labels[~free]) <= {
         "box",
         "floor",
     }

@@ -261,7 +261,8 @@ def test_ideal_perception_is_the_earlier_per_voxel_noise() -> None:
     poses = trajectory(world, config.n_steps, trajectory_rng, config.policy)
     for pose, frame in zip(poses, prepared.frames, strict=True):
         seen = camera.observe(world, pose)
-        noisy = config.noise.corrupt(seen.labels, episode.target.label, noise_rng, vocabulary=world.labels)
+        truth = world.labels_of(seen.owner)
+        noisy = config.noise.corrupt(truth, episode.target.label, noise_rng, vocabulary=world.labels)
         assert np.array_equal(names[frame.label_ids], noisy)
     assert config.sensor_model == (config.noise.tp, config.noise.fp)
 
@@ -271,12 +272,7 @@ def test_frames_carry_the_observed_voxels_with_their_labels(perception: str) -> 
     """Without errors the label ids name the true class of each observed voxel of the service's grid."""
     episode = load_episodes(CASES)[0]
     flawless = PerceptionConfig(
-        max_recall=1.0,
-        half_recall_area_px=1e-12,
-        accuracy=1.0,
-        lookalike_share=0.0,
-        speckle=0.0,
-        mapping_pass="none",
+        max_recall=1.0, half_recall_area_px=1e-12, accuracy=1.0, lookalike_share=0.0, speckle=0.0
     )
     config = SimConfig(
         n_steps=5, perception=perception, noise=LabelNoise(tp=1.0, fp=0.0, confusion=0.0), segmenter=flawless

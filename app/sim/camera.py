@@ -199,8 +199,7 @@ class Observation:
 
     pose: Pose
     flat_idx: np.ndarray  # (M,) int64 flat voxel indices of the world's grid
-    owner: np.ndarray  # (M,) int32 object index in the world, FREE for free voxels
-    labels: np.ndarray  # (M,) str true labels ("free" for free voxels)
+    owner: np.ndarray  # (M,) int32 object index in the world, FREE for free voxels (names: world.labels_of)
     # (R,) int32 object index of each ray's hit, FREE for a ray that hit nothing within range; empty when
     # the observation was made without rays.
     ray_owner: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int32))
@@ -249,7 +248,6 @@ class Camera:
             pose=pose,
             flat_idx=flat_idx,
             owner=owner,
-            labels=world.labels_of(owner),
             ray_owner=ray_owner.astype(np.int32),
             ray_distance=result.hit_t,
         )

@@ -294,7 +294,7 @@ def prepare_episode(
     for seen in seen_frames:
         if segmenter is None:
             noisy = config.noise.corrupt(
-                seen.labels, episode.target.label, noise_rng, vocabulary=world.labels
+                world.labels_of(seen.owner), episode.target.label, noise_rng, vocabulary=world.labels
             )
             uniq, inverse = np.unique(noisy, return_inverse=True)
             label_ids = np.array([id_of[str(u)] for u in uniq], dtype=np.uint32)[inverse]
