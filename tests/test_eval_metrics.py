@@ -10,6 +10,8 @@ from scipy.stats import chi2, multivariate_normal
 
 from app.evaluation.metrics import (
     anees,
+    clustered_interval,
+    clustered_mean_draws,
     euclidean_errors,
     gaussian_nll,
     gaussian_summary,
@@ -161,3 +163,40 @@ def test_hdr_coverage_outside_every_box_and_at_the_peak() -> None:
     assert not hdr_coverage(mixture, outside, rng).any()
     # The core's mean is the mode, inside the HDR of every mass whatever the plateau does.
     assert hdr_coverage(mixture, np.array([[0.5, 0.0, 1.0]]), rng).all()
+
+
+# --- the interval of a mean over rooms ------------------------------------------------------------------
+
+
+def test_clustered_mean_draws_match_concatenating_the_drawn_rooms() -> None:
+    rng = np.random.default_rng(3)
+    clusters = rng.choice(["r0", "r1", "r2", "r3", "r4"], size=60)
+    values = rng.gamma(1.5, 2.0, size=60)
+    labels = np.unique(clusters)
+    draws = rng.integers(0, len(labels), size=(40, len(labels)))
+    slow = [np.mean(np.concatenate([values[clusters == labels[c]] for c in row])) for row in draws]
+    np.testing.assert_allclose(clustered_mean_draws(values, clusters, draws), slow, rtol=1e-12)
+
+
+def test_clustered_interval_of_independent_cases_is_the_normal_one() -> None:
+    rng = np.random.default_rng(11)
+    values = rng.normal(3.0, 2.0, size=4000)
+    low, high = clustered_interval(values, np.arange(len(values)).astype(str))  # type: ignore[misc]
+    half = 1.645 * np.std(values) / math.sqrt(len(values))
+    assert low < np.mean(values) < high
+    assert (high - low) / 2 == pytest.approx(half, rel=0.1)
+
+
+def test_cases_of_one_room_count_once_and_two_rooms_span_their_means() -> None:
+    rng = np.random.default_rng(5)
+    rooms = np.repeat([f"room{i}" for i in range(30)], 4)
+    values = rng.gamma(1.5, 2.0, size=30)[np.repeat(np.arange(30), 4)]  # every room's cases err alike
+    by_room = clustered_interval(values, rooms)
+    # Four copies of each room: the same resampled means as one case per room.
+    assert by_room == clustered_interval(values[::4], rooms[::4])
+    as_cases = clustered_interval(values, np.arange(len(values)).astype(str))
+    assert by_room is not None and as_cases is not None
+    assert by_room[1] - by_room[0] > 1.5 * (as_cases[1] - as_cases[0])  # about sqrt(4) wider
+    two = clustered_interval([1.0, 1.0, 5.0, 5.0, 5.0], ["a", "a", "b", "b", "b"])
+    assert two == pytest.approx((1.0, 5.0))  # resamples aa, ab, bb: the 5% and 95% points are the rooms
+    assert clustered_interval([1.0, 2.0], ["a", "a"]) is None

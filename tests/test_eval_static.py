@@ -14,7 +14,7 @@ from scipy.stats import chi2, multivariate_normal
 from app.cli import build_parser, main
 from app.data.cases import CaseHypothesis, CaseTarget, GroundingCase, read_cases
 from app.evaluation import cli as eval_cli
-from app.evaluation.metrics import DEFAULT_MASSES, hdr_coverage
+from app.evaluation.metrics import DEFAULT_MASSES, hdr_coverage, nees
 from app.evaluation.static import (
     DEFAULT_HDR_SAMPLES,
     GROUNDERS,
@@ -201,6 +201,10 @@ def test_a_calibrated_grounder_scores_anees_three_nominal_coverage_and_the_refer
     overall = metrics["overall"]
     assert overall["n"] == n and overall["anees_n"] == n and overall["unmatched"] == 0
     assert overall["anees"] == pytest.approx(3.0, abs=0.25)  # std of the mean of chi^2(3): sqrt(6/n) = 0.055
+    low, high = overall["anees_ci90"]  # every case its own room: the normal interval, +- 1.645 x 0.055
+    assert low < overall["anees"] < high and (high - low) / 2 == pytest.approx(
+        1.645 * math.sqrt(6 / n), rel=0.2
+    )
     for m in DEFAULT_MASSES:
         assert overall["coverage"][str(m)] == pytest.approx(m, abs=0.035)
     reference_nll = -np.mean(
@@ -210,6 +214,25 @@ def test_a_calibrated_grounder_scores_anees_three_nominal_coverage_and_the_refer
     assert overall["rmse"] == pytest.approx(math.sqrt(np.mean(np.sum((means - targets) ** 2, axis=1))))
     assert metrics["failures"]["count"] == 0
     assert "uniform_weights_nll" not in overall  # only with a proposer
+
+
+def test_the_anees_interval_resamples_the_rooms_a_case_file_names() -> None:
+    rng = np.random.default_rng(2)
+    offsets = {"scene_a": 0.2, "scene_b": 2.0}  # every case of a room errs by its room's offset
+    cases, means = [], {}
+    for i in range(40):
+        room = "scene_a" if i % 2 else "scene_b"
+        target = rng.uniform(-3, 3, size=3)
+        case = make_case(i, target, ["t1"], "near").model_copy(update={"meta": {"scene_id": room}})
+        cases.append(case)
+        means[case.utterance] = target - offsets[room] * np.array([1.0, 0.0, 0.0])
+    per_case = [float(nees(means[c.utterance], COVARIANCE, np.asarray(c.target.position))[0]) for c in cases]
+    room_means = sorted(
+        np.mean([v for v, c in zip(per_case, cases, strict=True) if c.meta["scene_id"] == r]) for r in offsets
+    )
+    overall = evaluate_static(cases, [KnownGaussianGrounder(means)]).metrics["known"]["overall"]
+    # Two rooms: resamples aa, ab, bb, so the 5% and 95% points are the two rooms' own ANEES.
+    assert overall["anees_ci90"] == pytest.approx(room_means)
 
 
 def test_fixed_grounder_groups_by_relation_with_hand_computed_errors() -> None:
@@ -675,7 +698,7 @@ OLD_ROW_KEYS = {"ambiguity", "case_id", "relation"}
 OLD_ROW_METHOD_KEYS = {"components", "covered", "error_m", "nees", "nll"}
 NEW_SUMMARY_KEYS = {
     *("uniform_nll", "uniform_outside", "better_than_uniform", "nll_minus_uniform"),
-    *("worst_excess_over_uniform", "anees_full"),
+    *("worst_excess_over_uniform", "anees_full", "anees_ci90"),
 }
 
 

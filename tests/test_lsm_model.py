@@ -781,3 +781,27 @@ def test_the_tail_floor_raises_every_tail_weight_before_the_scales_are_fitted():
     assert (
         np.mean(served.nll(targets)) < np.mean(apply_calibration(model, relations, plain).nll(targets)) - 0.3
     )
+
+
+def test_a_split_knows_each_samples_room_and_the_report_resamples_rooms(tmp_path, cases):
+    """Region samples share their case's room; the report's ANEES interval is the one over those rooms."""
+    from app.data.cases import write_cases
+    from app.evaluation.metrics import clustered_interval
+    from app.training.lsm import load_split, summarize
+
+    rooms = ["room_a" if i < len(cases) // 2 else "room_b" for i in range(len(cases))]
+    path = tmp_path / "cases.jsonl"
+    moved = [c.model_copy(update={"meta": {"scene_id": r}}) for c, r in zip(cases, rooms, strict=True)]
+    write_cases(path, moved)
+    split = load_split("t", str(path), LSMConfig(**TINY), region_rate=1.0)
+    assert len(split.rooms) == len(split.samples) == 2 * len(cases)
+    assert split.rooms == [r for r in rooms for _ in range(2)]  # each case, then its region sample
+    n = len(split.samples)
+    rng = np.random.default_rng(0)
+    spread = np.repeat(rng.uniform(0.5, 2.0, size=n), 9).reshape(n, 3, 3) * np.eye(3)
+    densities = Densities(split.targets + rng.normal(size=(n, 3)), spread, spread, np.zeros(n))
+    report = summarize(densities, split, None)
+    objects = np.asarray(split.groups) != "region"
+    per_case = nees(densities.means, densities.moment_covariances, split.targets)[objects]
+    expected = clustered_interval(per_case, np.asarray(split.rooms)[objects])
+    assert expected is not None and report["overall"]["anees_ci90"] == pytest.approx(list(expected))

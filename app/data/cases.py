@@ -48,6 +48,13 @@ class GroundingCase(BaseModel):
     meta: dict[str, Any] = Field(default_factory=dict)
 
 
+def case_room(case: GroundingCase) -> str:
+    """The room (or house) a case is about: its `meta.scene_id` when the file says, else the case itself.
+    Cases of one room err together, so a bootstrap of their mean resamples rooms."""
+    scene = case.meta.get("scene_id")
+    return str(scene) if scene else case.case_id
+
+
 def read_cases(path: str | Path) -> Iterator[GroundingCase]:
     """Cases of a JSONL file, in order; a bad line raises with its line number."""
     with Path(path).open(encoding="utf-8") as fh:

@@ -8,7 +8,10 @@ Pure functions over arrays, one equation each:
     mixture NLL = -log [ sum_k w_k N(y; mu_k, Sigma_k) + sum_b v_b U(y; box_b) ]
 
 For a calibrated 3-D Gaussian, NEES ~ chi^2(3), so ANEES = 3; above 3 is overconfident, below 3 is
-underconfident. Highest-density-region coverage checks a whole mixture: the HDR of mass m is
+underconfident. A mean over a few hundred cases of a few dozen rooms is uncertain itself, and cases of one
+room err together: `clustered_interval` gives its interval by a bootstrap over rooms.
+
+Highest-density-region coverage checks a whole mixture: the HDR of mass m is
 {x : p(x) >= tau_m} with P(p(X) >= tau_m) = m, and a calibrated predictor covers its targets at rate m
 (on a uniform box's plateau the level set is split at random to hold exactly m: `hdr_coverage`).
 """
@@ -152,3 +155,43 @@ def gaussian_summary(means: np.ndarray, covariances: np.ndarray, targets: np.nda
         "nees_std": float(np.std(per_case_nees)),
         "nees_median": float(np.median(per_case_nees)),
     }
+
+
+def clustered_mean_draws(values: np.ndarray, clusters: np.ndarray, draws: np.ndarray) -> np.ndarray:
+    """The mean of `values` over each resample of whole clusters, (R,).
+
+    draws (R, C) holds, per resample, C indices into the C distinct clusters (in `np.unique` order), drawn
+    with replacement; resample r's mean is sum_c n_rc S_c / sum_c n_rc N_c, S_c and N_c the sum and count of
+    cluster c's values and n_rc the times c was drawn.
+    """
+    labels, inverse = np.unique(np.asarray(clusters), return_inverse=True)
+    sums = np.bincount(inverse, weights=np.asarray(values, dtype=np.float64), minlength=len(labels))  # (C,)
+    counts = np.bincount(inverse, minlength=len(labels)).astype(np.float64)  # (C,)
+    draws = np.asarray(draws)
+    rows = draws + len(labels) * np.arange(len(draws))[:, None]  # (R, C): one bincount for every resample
+    picked = np.bincount(rows.ravel(), minlength=draws.size).reshape(draws.shape).astype(np.float64)  # (R, C)
+    means: np.ndarray = (picked @ sums) / (picked @ counts)
+    return means
+
+
+def clustered_interval(
+    values: Sequence[float] | np.ndarray,
+    clusters: Sequence[str] | np.ndarray,
+    level: float = 0.9,
+    resamples: int = 2000,
+    seed: int = 0,
+) -> tuple[float, float] | None:
+    """The percentile bootstrap interval of mean(values) at `level`, resampling whole clusters (rooms).
+
+    Cases of one room share its layout, so their errors are correlated: resampling cases alone would
+    pretend each is independent and give too narrow an interval. None with fewer than two clusters.
+    Deterministic for a given `seed`.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    n_clusters = len(np.unique(np.asarray(clusters)))
+    if n_clusters < 2:
+        return None
+    draws = np.random.default_rng(seed).integers(0, n_clusters, size=(resamples, n_clusters))
+    means = clustered_mean_draws(values, np.asarray(clusters), draws)
+    low, high = np.quantile(means, [(1.0 - level) / 2.0, (1.0 + level) / 2.0])
+    return float(low), float(high)

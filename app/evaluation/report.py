@@ -35,6 +35,12 @@ def _number(value: Any, digits: int) -> str:
     return f"{value:.{digits}f}"
 
 
+def _interval(bounds: Sequence[float] | None, digits: int) -> str:
+    if not bounds:
+        return "-"
+    return f"{_number(bounds[0], digits)}-{_number(bounds[1], digits)}"
+
+
 def _table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1) -> list[str]:
     align = [":--"] * left + ["--:"] * (len(header) - left)
     lines = ["| " + " | ".join(header) + " |", "| " + " | ".join(align) + " |"]
@@ -43,7 +49,7 @@ def _table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1) 
 
 
 def _metric_header(with_uniform: bool, with_matched: bool) -> list[str]:
-    header = ["n", "RMSE (m)", "NLL", "NLL U", "< U", "ANEES"]
+    header = ["n", "RMSE (m)", "NLL", "NLL U", "< U", "ANEES", "ANEES 90% (rooms)"]
     if with_matched:
         header.append("ANEES n")
     header += ["ANEES full", *(f"cov {m:g}" for m in DEFAULT_MASSES)]
@@ -61,6 +67,7 @@ def _metric_cells(summary: dict[str, Any], with_uniform: bool, with_matched: boo
         _number(summary.get("uniform_nll"), 2),
         _number(summary.get("better_than_uniform"), 3),
         _number(summary.get("anees"), 2),
+        _interval(summary.get("anees_ci90"), 2),
     ]
     if with_matched:
         cells.append(str(summary.get("anees_n", 0)))
@@ -272,7 +279,8 @@ def _excess_histogram(excess: dict[str, list[float]], path: Path) -> Path:
 
 
 def _anees_per_relation(metrics: dict[str, Any], path: Path) -> Path:
-    """Grouped bars, log scale (overconfident baselines reach the hundreds), the calibrated 3 as a line."""
+    """Grouped bars with their 90% intervals over rooms, log scale (overconfident baselines reach the
+    hundreds), the calibrated 3 as a line."""
     import numpy as np
     from matplotlib.figure import Figure
 
@@ -283,9 +291,11 @@ def _anees_per_relation(metrics: dict[str, Any], path: Path) -> Path:
     width = 0.8 / max(len(methods), 1)
     x = np.arange(len(relations))
     for j, m in enumerate(methods):
-        values = [metrics[m]["per_relation"].get(r, {}).get("anees") for r in relations]
-        heights = [math.nan if v is None else v for v in values]
-        ax.bar(x + (j - (len(methods) - 1) / 2) * width, heights, width, label=m)
+        groups = [metrics[m]["per_relation"].get(r, {}) for r in relations]
+        heights = np.array([math.nan if g.get("anees") is None else g["anees"] for g in groups])
+        bounds = np.array([g.get("anees_ci90") or [math.nan, math.nan] for g in groups]).reshape(-1, 2)
+        errors = np.abs(bounds.T - heights)  # (2, R): below and above the bar; nan draws no whisker
+        ax.bar(x + (j - (len(methods) - 1) / 2) * width, heights, width, yerr=errors, capsize=2, label=m)
     ax.axhline(_CALIBRATED_ANEES, color="black", linestyle="--", linewidth=1, label="calibrated (3)")
     ax.set_yscale("log")
     ax.set_xticks(x, relations)

@@ -43,8 +43,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from app.data.cases import GroundingCase, read_cases
-from app.evaluation.metrics import gaussian_nll, nees
+from app.data.cases import GroundingCase, case_room, read_cases
+from app.evaluation.metrics import clustered_interval, gaussian_nll, nees
 from app.grounding.box_relations import internal_support_reach
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.interfaces import Grounder
@@ -146,6 +146,7 @@ class Split:
     cases: list[GroundingCase]  # the case of each object sample (for the baselines), when kept
     skipped: int
     map_log_volumes: np.ndarray  # (S,) log vol of each sample's map box: the uniform baseline's NLL
+    rooms: list[str]  # each sample's room (`case_room`): the unit the ANEES interval resamples
 
     @property
     def targets(self) -> np.ndarray:
@@ -219,6 +220,7 @@ def load_split(
     sources: list[str] = []
     cases: list[GroundingCase] = []
     volumes: list[float] = []
+    rooms: list[str] = []
     skipped = 0
     for case in read_cases(path):
         if limit is not None and len(samples) >= limit:
@@ -237,6 +239,7 @@ def load_split(
         groups.append(truth.relation.value)
         sources.append(source)
         volumes.append(volume)
+        rooms.append(case_room(case))
         if keep_cases:
             cases.append(case)
         if _takes_region(case.case_id, region_rate):
@@ -245,12 +248,13 @@ def load_split(
             groups.append(REGION_KEY)
             sources.append(source)
             volumes.append(volume)
+            rooms.append(rooms[-1])
     if not samples:
         msg = (
             f"{path}: no usable grounding cases (need hypotheses[0] with anchors present in the scene graph)"
         )
         raise ValueError(msg)
-    return Split(name, samples, groups, sources, cases, skipped, np.asarray(volumes))
+    return Split(name, samples, groups, sources, cases, skipped, np.asarray(volumes), rooms)
 
 
 # --- predictions and their scores --------------------------------------------------------------------------
@@ -347,10 +351,15 @@ def predict(
 
 
 def density_summary(
-    densities: Densities, targets: np.ndarray, map_log_volumes: np.ndarray, rng: np.random.Generator | None
+    densities: Densities,
+    targets: np.ndarray,
+    map_log_volumes: np.ndarray,
+    rng: np.random.Generator | None,
+    rooms: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """n, RMSE, NLL (mean, median), the uniform baseline and the share better than it, ANEES (moment
-    matched; mean, median), and with `rng` the HDR coverage of each mass."""
+    matched; mean, median; with `rooms` its 90% interval over them, `clustered_interval`), and with `rng`
+    the HDR coverage of each mass."""
     errors = np.linalg.norm(densities.means - targets, axis=1)
     nll = densities.nll(targets)
     per_case = nees(densities.means, densities.moment_covariances, targets)
@@ -365,6 +374,9 @@ def density_summary(
         "nees_median": float(np.median(per_case)),
         "tail_weight_mean": float(np.mean(densities.weights)),
     }
+    if rooms is not None:
+        interval = clustered_interval(per_case, rooms)
+        out["anees_ci90"] = None if interval is None else list(interval)
     if rng is not None:
         covered = densities.coverage(targets, rng)
         out["coverage"] = {str(m): float(np.mean(covered[:, j])) for j, m in enumerate(MASSES)}
@@ -376,12 +388,13 @@ def summarize(
 ) -> dict[str, Any]:
     """Object hypotheses overall, then per group (relations and "region") and per source."""
     groups, sources = np.asarray(split.groups), np.asarray(split.sources)
-    targets, volumes = split.targets, split.map_log_volumes
+    targets, volumes, rooms = split.targets, split.map_log_volumes, np.asarray(split.rooms)
     if index is not None:
-        groups, sources, targets, volumes = groups[index], sources[index], targets[index], volumes[index]
+        groups, sources, targets = groups[index], sources[index], targets[index]
+        volumes, rooms = volumes[index], rooms[index]
 
     def part(mask: np.ndarray) -> dict[str, Any]:
-        return density_summary(densities.take(mask), targets[mask], volumes[mask], rng)
+        return density_summary(densities.take(mask), targets[mask], volumes[mask], rng, rooms[mask])
 
     objects = groups != REGION_KEY
     return {
