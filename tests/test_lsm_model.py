@@ -783,15 +783,20 @@ def test_the_tail_floor_raises_every_tail_weight_before_the_scales_are_fitted():
     )
 
 
-def test_a_split_knows_each_samples_room_and_the_report_resamples_rooms(tmp_path, cases):
-    """Region samples share their case's room; the report's ANEES interval is the one over those rooms."""
+def test_a_split_knows_each_samples_room_and_convention_and_the_report_uses_them(tmp_path, cases):
+    """Region samples share their case's room; the report's ANEES interval is the one over those rooms, and
+    its per-convention rows hold the object samples of each convention's cases."""
     from app.data.cases import write_cases
     from app.evaluation.metrics import clustered_interval
     from app.training.lsm import load_split, summarize
 
     rooms = ["room_a" if i < len(cases) // 2 else "room_b" for i in range(len(cases))]
     path = tmp_path / "cases.jsonl"
-    moved = [c.model_copy(update={"meta": {"scene_id": r}}) for c, r in zip(cases, rooms, strict=True)]
+    conventions = ["sr3d" if i % 2 else "vla3d" for i in range(len(cases))]
+    moved = [
+        c.model_copy(update={"meta": {"scene_id": r, "convention": k}})
+        for c, r, k in zip(cases, rooms, conventions, strict=True)
+    ]
     write_cases(path, moved)
     split = load_split("t", str(path), LSMConfig(**TINY), region_rate=1.0)
     assert len(split.rooms) == len(split.samples) == 2 * len(cases)
@@ -805,3 +810,9 @@ def test_a_split_knows_each_samples_room_and_the_report_resamples_rooms(tmp_path
     per_case = nees(densities.means, densities.moment_covariances, split.targets)[objects]
     expected = clustered_interval(per_case, np.asarray(split.rooms)[objects])
     assert expected is not None and report["overall"]["anees_ci90"] == pytest.approx(list(expected))
+    # Per convention and relation: the object samples the cases of that convention made, and no other.
+    relations = [c.hypotheses[0].relation.value for c in cases]
+    expected_keys = {f"{k} {r}" for k, r in zip(conventions, relations, strict=True)}
+    assert set(report["per_convention"]) == expected_keys
+    for key, summary in report["per_convention"].items():
+        assert summary["n"] == sum(f"{k} {r}" == key for k, r in zip(conventions, relations, strict=True))

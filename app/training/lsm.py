@@ -147,6 +147,7 @@ class Split:
     skipped: int
     map_log_volumes: np.ndarray  # (S,) log vol of each sample's map box: the uniform baseline's NLL
     rooms: list[str]  # each sample's room (`case_room`): the unit the ANEES interval resamples
+    conventions: list[str]  # each sample's relation convention (`meta.convention`; "" when not said)
 
     @property
     def targets(self) -> np.ndarray:
@@ -221,6 +222,7 @@ def load_split(
     cases: list[GroundingCase] = []
     volumes: list[float] = []
     rooms: list[str] = []
+    conventions: list[str] = []
     skipped = 0
     for case in read_cases(path):
         if limit is not None and len(samples) >= limit:
@@ -240,6 +242,7 @@ def load_split(
         sources.append(source)
         volumes.append(volume)
         rooms.append(case_room(case))
+        conventions.append(str(case.meta.get("convention", "")))
         if keep_cases:
             cases.append(case)
         if _takes_region(case.case_id, region_rate):
@@ -249,12 +252,13 @@ def load_split(
             sources.append(source)
             volumes.append(volume)
             rooms.append(rooms[-1])
+            conventions.append(conventions[-1])
     if not samples:
         msg = (
             f"{path}: no usable grounding cases (need hypotheses[0] with anchors present in the scene graph)"
         )
         raise ValueError(msg)
-    return Split(name, samples, groups, sources, cases, skipped, np.asarray(volumes), rooms)
+    return Split(name, samples, groups, sources, cases, skipped, np.asarray(volumes), rooms, conventions)
 
 
 # --- predictions and their scores --------------------------------------------------------------------------
@@ -386,12 +390,15 @@ def density_summary(
 def summarize(
     densities: Densities, split: Split, rng: np.random.Generator | None, index: np.ndarray | None = None
 ) -> dict[str, Any]:
-    """Object hypotheses overall, then per group (relations and "region") and per source."""
+    """Object hypotheses overall, then per group (relations and "region"), per source, and per relation
+    convention and group where the cases say which convention made them (a model that cannot tell the
+    conventions apart is calibrated on their mix, not on each)."""
     groups, sources = np.asarray(split.groups), np.asarray(split.sources)
     targets, volumes, rooms = split.targets, split.map_log_volumes, np.asarray(split.rooms)
+    conventions = np.asarray(split.conventions)
     if index is not None:
         groups, sources, targets = groups[index], sources[index], targets[index]
-        volumes, rooms = volumes[index], rooms[index]
+        volumes, rooms, conventions = volumes[index], rooms[index], conventions[index]
 
     def part(mask: np.ndarray) -> dict[str, Any]:
         return density_summary(densities.take(mask), targets[mask], volumes[mask], rng, rooms[mask])
@@ -404,6 +411,11 @@ def summarize(
             s: part(objects & (sources == s))
             for s in sorted(set(sources.tolist()))
             if (objects & (sources == s)).any()
+        },
+        "per_convention": {
+            f"{c} {g}": part((conventions == c) & (groups == g))
+            for c in sorted(set(conventions.tolist()) - {""})
+            for g in sorted(set(groups[conventions == c].tolist()) - {REGION_KEY})
         },
     }
 
@@ -793,17 +805,20 @@ def format_report(report: dict[str, Any]) -> str:
         lines += [
             f"### {split}",
             "",
-            "| method | group | n | RMSE (m) | NLL (nats) | uniform NLL | better than uniform | ANEES | "
-            "0.9 HDR coverage |",
+            "| method | group | n | RMSE (m) | NLL (nats) | uniform NLL | better than uniform | "
+            "ANEES (90% over rooms) | 0.9 HDR coverage |",
             "|---|---|---|---|---|---|---|---|---|",
         ]
         for method, summary in methods.items():
             rows = [("all", summary["overall"]), *sorted(summary["per_relation"].items())]
             rows += [(f"source {k}", v) for k, v in sorted(summary["per_source"].items())]
+            rows += [(f"convention {k}", v) for k, v in sorted(summary.get("per_convention", {}).items())]
             for group, s in rows:
                 if not s.get("n"):
                     continue
                 coverage = s.get("coverage", {}).get("0.9")
+                low, high = s.get("anees_ci90") or (None, None)
+                anees = f"{s['anees']:.2f}" + ("" if low is None else f" ({low:.2f}-{high:.2f})")
                 cells = [
                     method,
                     group,
@@ -812,7 +827,7 @@ def format_report(report: dict[str, Any]) -> str:
                     f"{s['nll_mean']:.2f}",
                     f"{s['uniform_nll']:.2f}",
                     f"{s['better_than_uniform']:.2f}",
-                    f"{s['anees']:.2f}",
+                    anees,
                     "" if coverage is None else f"{coverage:.3f}",
                 ]
                 lines.append("| " + " | ".join(cells) + " |")
