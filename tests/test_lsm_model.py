@@ -794,7 +794,7 @@ def test_a_split_knows_each_samples_room_and_convention_and_the_report_uses_them
     path = tmp_path / "cases.jsonl"
     conventions = ["sr3d" if i % 2 else "vla3d" for i in range(len(cases))]
     moved = [
-        c.model_copy(update={"meta": {"scene_id": r, "convention": k}})
+        c.model_copy(update={"meta": {"scene_id": r, "convention": k, "source": f"source_{r}"}})
         for c, r, k in zip(cases, rooms, conventions, strict=True)
     ]
     write_cases(path, moved)
@@ -810,6 +810,12 @@ def test_a_split_knows_each_samples_room_and_convention_and_the_report_uses_them
     per_case = nees(densities.means, densities.moment_covariances, split.targets)[objects]
     expected = clustered_interval(per_case, np.asarray(split.rooms)[objects])
     assert expected is not None and report["overall"]["anees_ci90"] == pytest.approx(list(expected))
+    # Per source and group: every sample of the source in that group, region samples included.
+    sources = np.asarray(split.sources)
+    assert {k.rsplit(" ", 1)[0] for k in report["per_source_group"]} == {"source_room_a", "source_room_b"}
+    for key, summary in report["per_source_group"].items():
+        source, group = key.rsplit(" ", 1)
+        assert summary["n"] == int(np.sum((sources == source) & (np.asarray(split.groups) == group)))
     # Per convention and relation: the object samples the cases of that convention made, and no other.
     relations = [c.hypotheses[0].relation.value for c in cases]
     expected_keys = {f"{k} {r}" for k, r in zip(conventions, relations, strict=True)}

@@ -390,9 +390,10 @@ def density_summary(
 def summarize(
     densities: Densities, split: Split, rng: np.random.Generator | None, index: np.ndarray | None = None
 ) -> dict[str, Any]:
-    """Object hypotheses overall, then per group (relations and "region"), per source, and per relation
-    convention and group where the cases say which convention made them (a model that cannot tell the
-    conventions apart is calibrated on their mix, not on each)."""
+    """Object hypotheses overall, then per group (relations and "region"), per source, per source and group
+    (a source never trained on, relation by relation), and per relation convention and group where the
+    cases say which convention made them (a model that cannot tell the conventions apart is calibrated on
+    their mix, not on each)."""
     groups, sources = np.asarray(split.groups), np.asarray(split.sources)
     targets, volumes, rooms = split.targets, split.map_log_volumes, np.asarray(split.rooms)
     conventions = np.asarray(split.conventions)
@@ -411,6 +412,11 @@ def summarize(
             s: part(objects & (sources == s))
             for s in sorted(set(sources.tolist()))
             if (objects & (sources == s)).any()
+        },
+        "per_source_group": {
+            f"{s} {g}": part((sources == s) & (groups == g))
+            for s in sorted(set(sources.tolist()))
+            for g in sorted(set(groups[sources == s].tolist()))
         },
         "per_convention": {
             f"{c} {g}": part((conventions == c) & (groups == g))
@@ -812,6 +818,8 @@ def format_report(report: dict[str, Any]) -> str:
         for method, summary in methods.items():
             rows = [("all", summary["overall"]), *sorted(summary["per_relation"].items())]
             rows += [(f"source {k}", v) for k, v in sorted(summary["per_source"].items())]
+            if len(summary["per_source"]) > 1:
+                rows += [(f"source {k}", v) for k, v in sorted(summary.get("per_source_group", {}).items())]
             rows += [(f"convention {k}", v) for k, v in sorted(summary.get("per_convention", {}).items())]
             for group, s in rows:
                 if not s.get("n"):
