@@ -343,32 +343,6 @@ def test_a_region_hypothesis_is_anchored_on_the_region_box(cases):
     assert sample.text.startswith("the remote in the ")
 
 
-def test_the_target_class_size_is_the_median_box_of_its_class_in_the_map():
-    """[1, log longer side, log shorter side, log height] of the median of the same-class boxes, whatever
-    their yaw or where the map lies; zeros for a class the map does not hold."""
-    from app.lsm.features import SceneArrays, target_class_size
-    from app.scene_graph.model import SceneObject
-
-    def scene(yaw: float, offset: float) -> SceneGraph:
-        boxes = [
-            ("m1", "Mug", (0.10, 0.08, 0.12)),
-            ("m2", "mug", (0.12, 0.10, 0.10)),
-            ("t", "table", (1.0, 2.0, 0.7)),
-        ]
-        return SceneGraph(
-            objects=[
-                SceneObject(id=i, label=label, center=[offset + k, 0.0, 0.5], size=list(size), yaw=yaw)
-                for k, (i, label, size) in enumerate(boxes)
-            ]
-        )
-
-    expected = np.array([1.0, math.log(0.11), math.log(0.09), math.log(0.11)])
-    for yaw, offset in [(0.0, 0.0), (1.1, 40.0)]:
-        arrays = SceneArrays.of(scene(yaw, offset))
-        np.testing.assert_allclose(target_class_size(arrays, "mugs"), expected, atol=1e-6)
-        np.testing.assert_array_equal(target_class_size(arrays, "laptop"), np.zeros(4))
-
-
 def test_make_sample_rejects_unknown_anchor(cases):
     with pytest.raises(NotFound, match="no-such-object"):
         make_sample(cases[0].scene_graph, ["no-such-object"], Relation.ON, "x", LSMConfig(**TINY))
@@ -442,7 +416,7 @@ def encoder() -> TextEncoder:
 
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory) -> Path:
-    model = _tiny_model(seed=3, region_cond_dim=14)  # reads the target class's size too
+    model = _tiny_model(seed=3)
     _perturb_head(model)
     directory = tmp_path_factory.mktemp("lsm")
     save_checkpoint(

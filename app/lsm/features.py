@@ -60,7 +60,6 @@ from app.grounding.box_relations import internal_support_reach
 from app.grounding.relations import Relation
 from app.lsm.model import RELATION_INDEX, ROLE_ANCHOR, ROLE_OTHER, LSMBatch, LSMConfig
 from app.scene_graph.model import SceneGraph, aabb_extents
-from app.vocabulary import class_key
 
 Embed = Callable[[Sequence[str]], np.ndarray]
 ORDINAL_RELATIONS = (Relation.CLOSEST, Relation.FARTHEST)
@@ -126,7 +125,6 @@ class Sample:
     yaw: float  # the local frame's rotation about z: world = R(yaw) local + origin
     target: np.ndarray | None = None  # (3,) local frame
     target_text: str | None = None  # "composed": embedded apart from `text`, the two summed
-    target_class: np.ndarray = field(default_factory=lambda: np.zeros(4, dtype=np.float32))  # (4,)
 
     def to_world(self, mean: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A local-frame mean (3,) and covariances (..., 3, 3) in the world frame (`to_world`)."""
@@ -167,7 +165,6 @@ class SceneArrays:
         np.ndarray, np.ndarray
     ]  # (centre, sides) of the objects' bounding box, turned by dominant_yaw
     floor_z: float  # 10th percentile of object bottoms: most furniture stands on the floor
-    class_keys: tuple[str, ...]  # `class_key` of every object's label
     dominant_yaw: float  # in [-pi/4, pi/4): the scene's yaw modulo a quarter turn
     centroid: np.ndarray  # (3,) mean of the objects' centres
     _turned_boxes: dict[float, tuple[np.ndarray, np.ndarray]] = field(
@@ -231,7 +228,6 @@ class SceneArrays:
             },
             map_box=(turn @ (0.5 * (low + high)), high - low),
             floor_z=percentile(centers[:, 2] - 0.5 * extents[:, 2], 10.0),
-            class_keys=tuple(class_key(o.label) for o in objects),
             dominant_yaw=dominant,
             centroid=centers.mean(axis=0),
         )
@@ -276,18 +272,6 @@ def region_frame(
         scene_low, scene_high = scene_bounds
         scale = np.maximum(scale, np.maximum(-scene_low, scene_high))
     return scale
-
-
-def target_class_size(arrays: SceneArrays, target_name: str) -> np.ndarray:
-    """What the map says of the target's size: [1, log longer side, log shorter side, log height] of the
-    median box of the objects of its class (`class_key`), zeros when the map has none; (4,), yaw-free."""
-    key = class_key(target_name)
-    rows = [k for k, other in enumerate(arrays.class_keys) if key and other == key]
-    if not rows:
-        return np.zeros(4, dtype=np.float32)
-    dims = np.median(arrays.dims[rows], axis=0)  # (3,) the boxes' own sides
-    sides = np.maximum([max(dims[0], dims[1]), min(dims[0], dims[1]), dims[2]], 0.01)
-    return np.concatenate([[1.0], np.log(sides)]).astype(np.float32)
 
 
 def make_sample(
@@ -378,7 +362,6 @@ def make_sample(
         if target is None
         else local(np.asarray(target, dtype=np.float64)[None])[0].astype(np.float32),
         target_text=target_text(target_name) if composed else None,
-        target_class=target_class_size(arrays, target_name),
     )
 
 
@@ -459,26 +442,16 @@ def region_condition(
     floor_z: torch.Tensor,
     scene_low: torch.Tensor,
     scene_high: torch.Tensor,
-    target_class: torch.Tensor,
 ) -> torch.Tensor:
-    """What the head's FiLM sees of (s, t), the room around it and the target's class size; (B, 3) x 2,
-    (B,), (B, 3) x 2, (B, 4) -> (B, 14).
+    """What the head's FiLM sees of (s, t) and the room around it; (B, 3) x 2, (B,), (B, 3) x 2 -> (B, 10).
 
-    [log s (3), t_z - floor (1), (scene centre - t) / s (3), scene half-extent / s (3), `target_class_size`
-    (4)]; a model reads the first `region_cond_dim` of them. The absolute x, y of
+    [log s (3), t_z - floor (1), (scene centre - t) / s (3), scene half-extent / s (3)]. The absolute x, y of
     t are left out on purpose (a map frame's origin carries no meaning); where the room lies relative to the
     anchors does ("farthest from the door" points across the room).
     """
     centre, half = 0.5 * (scene_low + scene_high), 0.5 * (scene_high - scene_low)  # (B, 3)
     return torch.cat(
-        [
-            torch.log(scale),
-            (shift[:, 2] - floor_z)[:, None],
-            (centre - shift) / scale,
-            half / scale,
-            target_class,
-        ],
-        dim=-1,
+        [torch.log(scale), (shift[:, 2] - floor_z)[:, None], (centre - shift) / scale, half / scale], dim=-1
     )
 
 
@@ -533,7 +506,6 @@ class PackedSamples:
         self.floor_z = torch.tensor([s.floor_z for s in samples], dtype=torch.float32)  # (S,)
         self.scene_low = torch.from_numpy(np.stack([s.scene_low for s in samples]))  # (S, 3)
         self.scene_high = torch.from_numpy(np.stack([s.scene_high for s in samples]))  # (S, 3)
-        self.target_class = torch.from_numpy(np.stack([s.target_class for s in samples]))  # (S, 4)
         targets = [s.target for s in samples if s.target is not None]
         self.target = torch.from_numpy(np.stack(targets)) if len(targets) == len(samples) else None  # (S, 3)
 
@@ -563,7 +535,7 @@ class PackedSamples:
             anchor_high=self.anchor_high[index],
             plain_top=self.plain_top[index],
             region_cond=region_condition(
-                shift, scale, floor_z, self.scene_low[index], self.scene_high[index], self.target_class[index]
+                shift, scale, floor_z, self.scene_low[index], self.scene_high[index]
             ),
             target=None if self.target is None else self.target[index],
         )

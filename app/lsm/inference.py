@@ -114,8 +114,7 @@ class LSMInference:
             query_out = _block_for_token(self.fusion[-1], x, fusion_bias, token=1)
         pooled = F.layer_norm(query_out, (dim,), model.ln_f.weight, model.ln_f.bias, model.ln_f.eps)
 
-        room = (packed.scene_low, packed.scene_high, packed.target_class)
-        cond = region_condition(shift, scale, floor_z, *room)[:, : cfg.region_cond_dim]  # (B, C)
+        cond = region_condition(shift, scale, floor_z, packed.scene_low, packed.scene_high)  # (B, C)
         film = F.gelu(F.linear(cond, self.film_in.weight, self.film_in.bias))
         film = F.linear(film, self.film_out.weight, self.film_out.bias)
         film_scale, film_shift = film.chunk(2, dim=-1)  # (B, D) each

@@ -59,9 +59,7 @@ class LSMConfig:
     text_dim: int = 384  # frozen MiniLM sentence embedding (utterance and object labels)
     object_feature_dim: int = 13  # 12-d geometry + cosine(label, utterance), see features.object_features
     pair_dim: int = 12  # anchor-centric pair feature, see features.pair_features
-    # The first columns of features.region_condition the head reads: s, t's height and the room around t
-    # (10), then the size of the target's class in the map (14).
-    region_cond_dim: int = 10
+    region_cond_dim: int = 10  # features.region_condition: s, t's height, where the room lies around t
     n_relations: int = len(Relation)
     d_model: int = 256
     n_heads: int = 8
@@ -282,11 +280,10 @@ class LanguageSensorModel(nn.Module):
             x = block(x, fusion_bias)
         pooled = self.ln_f(x[:, 1])  # (B, D): the target-query token
 
-        cond = batch.region_cond[:, : cfg.region_cond_dim]  # (B, C): older models read fewer
-        scale, shift = self.region_film(cond).chunk(2, dim=-1)  # (B, D) each
+        scale, shift = self.region_film(batch.region_cond).chunk(2, dim=-1)  # (B, D) each
         out = self.head(pooled * (1.0 + scale) + shift)  # (B, O)
         if self.relation_prior is not None:
-            prior = self.relation_prior(cond).view(bsz, cfg.n_relations, cfg.n_outputs)
+            prior = self.relation_prior(batch.region_cond).view(bsz, cfg.n_relations, cfg.n_outputs)
             out = out + prior[torch.arange(bsz), batch.relation]  # (B, O)
         box = AnchorBox(batch.relation, batch.anchor_low, batch.anchor_high, batch.plain_top)
         return decode_head(out, batch.region_shift, batch.region_scale, cfg, box)
