@@ -8,6 +8,9 @@ refer to), and emits a bounded number of (target, relation, anchor(s)) cases wit
 convention's style (`app.data.templates`). Targets are any object but the room's shell (doors, windows and
 tables as well as mugs), less the fragments of their class (`fragment_ids`).
 
+With `relocate_fraction` > 0 a share of the train targets is first moved to another resting place of its
+room (`app.data.relocate`), so that where a target rests follows no one source's habits.
+
 Relations are computed once per target, over the whole map, from the clean boxes in the layout's frame.
 A case's map may then be shown moved (any yaw, offset and floor height), with box noise, missing objects
 and another dataset's raw labels (`app.data.augment`, `app.data.label_vocabularies`): the relations stay
@@ -66,11 +69,12 @@ from app.data.layouts import (
     split_camel_case,
     thor_placement_relation,
 )
+from app.data.relocate import relocated
 from app.data.templates import render_sr3d, render_utterance, render_vla3d
 from app.errors import InvalidInput
 from app.grounding.box_relations import TrueReading
 from app.grounding.relations import Relation
-from app.scene_graph.model import SceneGraph, SceneObject
+from app.scene_graph.model import Region, SceneGraph, SceneObject
 
 __all__ = [
     "SOURCES",
@@ -163,6 +167,8 @@ class BuildConfig:
     raw_labels: bool = True
     # Targets of every size (`is_grounding_target`), or only small and medium movable ones.
     all_targets: bool = True
+    # Share of the train targets moved to another resting place of their region first (`app.data.relocate`).
+    relocate_fraction: float = 0.0
 
     def shift(self, split: str) -> Shift | None:
         """How the split's shifted maps are drawn; None for the canonical frame only."""
@@ -266,6 +272,7 @@ class _Candidate:
     convention: Convention
     others: list[SceneObject]
     by_relation: dict[Relation, list[TrueReading]]
+    relocated: bool = False
 
 
 def _draw_convention(
@@ -365,6 +372,7 @@ def _case(
             "ambiguity": _ambiguity(grounding.anchor_ids, objects),
             "augmentation": augmentation,
             "convention": candidate.convention.value,
+            "relocated": candidate.relocated,
             "scene_ids": list(layout.scene_ids),
             "rooms": len(layout.scene_ids),
             "floors": layout.floors,
@@ -376,6 +384,19 @@ def _case(
             "label_vocabulary": vocabulary,
         },
     )
+
+
+def _moved(
+    target: SceneObject,
+    others: Sequence[SceneObject],
+    region: Region | None,
+    rng: np.random.Generator,
+    notes: Counter[str],
+) -> SceneObject:
+    """The target at another resting place of its region (`relocated`), or where it was if none is found."""
+    moved = relocated(target, others, region, rng)
+    notes["targets_relocated" if moved is not None else "targets_without_a_place_to_move_to"] += 1
+    return target if moved is None else moved
 
 
 def _map_cases(
@@ -392,17 +413,25 @@ def _map_cases(
     the common ones.
     """
     rng = np.random.default_rng(_stable_seed(config.seed, "map", layout.source, layout.map_id))
+    # Its own stream, so that relocating leaves every other draw of the map as it was.
+    moves = np.random.default_rng(_stable_seed(config.seed, "relocate", layout.source, layout.map_id))
     by_id = {o.id: o for o in layout.objects}
     volumes = {r.id: float(np.prod(r.size)) for r in layout.regions}
+    regions = {r.id: r for r in layout.regions}
     candidates = []
     for target_id in list(split_of_target)[:MAX_EVALUATED_TARGETS]:
         target = by_id[target_id]
         others = [o for o in layout.objects if o.id != target_id]
+        placements = None if layout.placements is None else layout.placements.get(target_id, {})
+        if split_of_target[target_id] == "train" and moves.random() < config.relocate_fraction:
+            target = _moved(target, others, regions.get(target.region_id or ""), moves, notes)
+            # The source's placements are where it stood; on/in now come from the boxes.
+            placements = placements if target is by_id[target_id] else None
+        was_moved = target is not by_id[target_id]
         convention = _draw_convention(target, others, config, rng)
         if convention is None:
             notes["targets_outside_every_convention"] += 1
             continue
-        placements = None if layout.placements is None else layout.placements.get(target_id, {})
         by_relation: dict[Relation, list[TrueReading]] = defaultdict(list)
         found = groundings(
             convention,
@@ -416,7 +445,9 @@ def _map_cases(
         if not by_relation:
             notes[f"targets_without_relation_{convention.value}"] += 1
             continue
-        candidates.append(_Candidate(target, split_of_target[target_id], convention, others, by_relation))
+        candidates.append(
+            _Candidate(target, split_of_target[target_id], convention, others, by_relation, was_moved)
+        )
     # A stable sort keeps the shuffled order among equally rare targets.
     candidates.sort(key=lambda c: min(balancers[c.convention].emitted[r] for r in c.by_relation))
     renamed = renamed_labels(layout.source, {o.id: o.label for o in layout.objects}, layout.raw_labels)

@@ -57,6 +57,12 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     build.add_argument(
         "--small-targets-only", action="store_true", help="only small and medium movable objects as targets"
     )
+    build.add_argument(
+        "--relocate-fraction",
+        type=float,
+        default=0.0,
+        help="share of train targets first moved to another resting place of their room (default 0)",
+    )
     build.add_argument("--no-progress", action="store_true", help="no progress bar")
     build.set_defaults(func=build_command)
 
@@ -94,6 +100,9 @@ def build_command(args: argparse.Namespace) -> int:
     if args.augment < 0 or args.max_cases_per_scene < 1 or args.cases_per_target < 1:
         msg = "--augment must be >= 0, --max-cases-per-scene and --cases-per-target >= 1"
         raise SystemExit(msg)
+    if not 0.0 <= args.relocate_fraction <= 1.0:
+        msg = "--relocate-fraction must lie in [0, 1]"
+        raise SystemExit(msg)
     if args.house_fraction < 0:
         msg = "--house-fraction must be >= 0"
         raise SystemExit(msg)
@@ -122,6 +131,7 @@ def build_command(args: argparse.Namespace) -> int:
         box_noise=not args.no_box_noise,
         raw_labels=not args.no_raw_labels,
         all_targets=not args.small_targets_only,
+        relocate_fraction=args.relocate_fraction,
     )
     summary = write_build(scenes, args.out, config, progress=not args.no_progress)
     elapsed = time.perf_counter() - start

@@ -1,0 +1,105 @@
+"""Targets moved to another resting place in their room before their relations are computed.
+
+A source's layouts place small things where that source puts them (AI2-THOR's mugs on counters, ScanNet's
+bags on chairs), and a model trained on one source learns that habit as if it were what "near the table"
+means. A person's object can rest anywhere it physically can. So a share of the training targets
+(`BuildConfig.relocate_fraction`) is first put down somewhere else in its own region: on the floor, or on
+the top of a piece of furniture wide enough to hold it, at a uniform place on that surface, never inside
+another object. The builder then lists the moved target's true relations from the boxes as for any target,
+so the utterance stays true of where the target is; only where it rests follows no source's habit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from app.grounding.box_relations import FLOOR_CEILING, is_room_shell
+from app.scene_graph.model import Region, SceneObject
+from app.vocabulary import in_classes
+
+# How often the floor is drawn rather than a furniture top (when the room has a top wide enough).
+FLOOR_PROBABILITY = 0.3
+# Tops higher than this above the floor hold nothing a person would leave there (shelves' tops, wardrobes).
+SUPPORT_MAX_HEIGHT = 2.0
+# A place is rejected when more than this share of the target's box lies inside another object's box.
+MAX_OVERLAP = 0.05
+TRIES = 20
+
+
+def _aabb(objects: Sequence[SceneObject]) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) lower and upper corners of the axis-aligned boxes around the objects."""
+    if not objects:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    return np.stack([o.min_corner for o in objects]), np.stack([o.max_corner for o in objects])
+
+
+def overlap_share(
+    low: np.ndarray, high: np.ndarray, others_low: np.ndarray, others_high: np.ndarray
+) -> float:
+    """The largest share of the box [low, high] that lies inside any one of the other boxes."""
+    if len(others_low) == 0:
+        return 0.0
+    inside = np.clip(np.minimum(high, others_high) - np.maximum(low, others_low), 0.0, None)
+    return float(np.max(np.prod(inside, axis=1)) / np.prod(high - low))
+
+
+def floor_height(objects: Sequence[SceneObject]) -> float:
+    """The floor under a region's objects: the lowest bottom of its furniture (shell boxes have thickness)."""
+    bottoms = [float(o.min_corner[2]) for o in objects if not is_room_shell(o.label)]
+    if not bottoms:
+        bottoms = [float(o.min_corner[2]) for o in objects]
+    return min(bottoms)
+
+
+def relocated(
+    target: SceneObject,
+    others: Sequence[SceneObject],
+    region: Region | None,
+    rng: np.random.Generator,
+) -> SceneObject | None:
+    """The target resting at a random place of its region (`others` exclude it), or None where no place
+    was found in TRIES draws. The floor is the region's box footprint at `floor_height`; a furniture top is
+    any non-shell object of the region under SUPPORT_MAX_HEIGHT whose footprint holds the target's."""
+    local = [o for o in others if region is None or o.region_id in (None, region.id)]
+    if not local:
+        return None
+    half = target.half_extent
+    floor = floor_height(local)
+    if region is not None:
+        lo_xy = np.asarray(region.center[:2]) - np.asarray(region.size[:2]) / 2
+        hi_xy = np.asarray(region.center[:2]) + np.asarray(region.size[:2]) / 2
+    else:
+        low_all, high_all = _aabb(local)
+        lo_xy, hi_xy = low_all.min(axis=0)[:2], high_all.max(axis=0)[:2]
+    supports = [
+        o
+        for o in local
+        if not is_room_shell(o.label)
+        and float(o.max_corner[2]) - floor <= SUPPORT_MAX_HEIGHT
+        and np.all(o.max_corner[:2] - o.min_corner[:2] >= 2 * half[:2])
+    ]
+    # Floors and ceilings are slabs the target may touch; walls and furniture it may not enter.
+    solid = [o for o in local if not in_classes(o.label, FLOOR_CEILING)]
+    others_low, others_high = _aabb(solid)
+    for _ in range(TRIES):
+        on_floor = not supports or rng.random() < FLOOR_PROBABILITY
+        if on_floor:
+            area_lo, area_hi, base, skip = lo_xy, hi_xy, floor, -1
+        else:
+            skip = int(rng.integers(len(supports)))
+            support = supports[skip]
+            area_lo, area_hi = support.min_corner[:2], support.max_corner[:2]
+            base = float(support.max_corner[2])
+        if np.any(area_hi - area_lo - 2 * half[:2] < 1e-6):
+            continue
+        xy = rng.uniform(area_lo + half[:2], area_hi - half[:2])
+        centre = np.array([xy[0], xy[1], base + half[2]])
+        keep = np.ones(len(solid), dtype=bool)
+        if skip >= 0:
+            keep[solid.index(supports[skip])] = False
+        if overlap_share(centre - half, centre + half, others_low[keep], others_high[keep]) > MAX_OVERLAP:
+            continue
+        return target.model_copy(update={"center": [float(v) for v in centre]})
+    return None
