@@ -351,6 +351,13 @@ def test_every_split_gets_cases_and_targets_leave_their_graph(built):
         assert GroundingCase.model_validate_json(case.model_dump_json(exclude_none=True)) == case
 
 
+def test_the_default_build_moves_a_share_of_the_train_targets_only(built):
+    moved = Counter((split, c.meta["relocated"]) for split, c in built if c.meta["augmentation"] == 0)
+    share = moved["train", True] / (moved["train", True] + moved["train", False])
+    assert 0.03 < share < 0.25  # relocate_fraction 0.1 of the targets, a target giving up to 3 cases
+    assert not any(relocated for (split, relocated) in moved if split != "train")
+
+
 def test_every_convention_and_relation_is_represented(built):
     by_convention = Counter((c.meta["convention"], c.hypotheses[0].relation) for _, c in built)
     for convention in Convention:
@@ -371,11 +378,8 @@ def test_relations_hold_in_the_canonical_frame_by_their_convention(built):
         if (
             convention is Convention.VLMAP
             and case.meta["source"] == "ai2thor"
-            and hyp.relation
-            in (
-                Relation.ON,
-                Relation.IN,
-            )
+            and not case.meta["relocated"]
+            and hyp.relation in (Relation.ON, Relation.IN)
         ):
             continue  # AI2-THOR's on/in come from its parent receptacles (next test)
         grounding = TrueReading(hyp.relation, tuple(hyp.anchor_ids))
@@ -388,7 +392,10 @@ def test_ai2thor_on_in_follow_the_parent_receptacles_and_the_rest_the_boxes(buil
     thor = [
         c
         for split, c in built
-        if c.meta["source"] == "ai2thor" and c.meta["convention"] == "vlmap" and c.meta["rooms"] == 1
+        if c.meta["source"] == "ai2thor"
+        and c.meta["convention"] == "vlmap"
+        and c.meta["rooms"] == 1
+        and not c.meta["relocated"]
     ]
     relations = Counter(c.hypotheses[0].relation for c in thor)
     assert relations[Relation.ON] and relations[Relation.IN]
@@ -418,11 +425,12 @@ def test_shifted_maps_are_moved_noisy_partial_copies_of_the_canonical_case(built
         assert {o.id for o in after} <= set(before) and set(case.hypotheses[0].anchor_ids) <= {
             o.id for o in after
         }
-        assert (
-            len(before) - len(after)
-            == noise["dropped"]
-            == math.floor(noise["drop_fraction"] * (len(before) - len(set(case.hypotheses[0].anchor_ids))))
-        )
+        droppable = len(before) - len(set(case.hypotheses[0].anchor_ids))
+        assert len(before) - len(after) == noise["dropped"]
+        # meta rounds the drawn fraction to 4 decimals
+        fraction = noise["drop_fraction"]
+        low, high = math.floor((fraction - 5e-5) * droppable), math.floor((fraction + 5e-5) * droppable)
+        assert low <= noise["dropped"] <= high
         assert noise["drop_fraction"] <= 0.2 and 0.05 <= noise["size_noise"] <= 0.10
         reach = math.sqrt(3) * noise["center_jitter"] + 1e-3
         for o in after:
