@@ -351,10 +351,12 @@ def test_every_split_gets_cases_and_targets_leave_their_graph(built):
         assert GroundingCase.model_validate_json(case.model_dump_json(exclude_none=True)) == case
 
 
-def test_the_default_build_moves_a_share_of_the_train_targets_only(built):
-    moved = Counter((split, c.meta["relocated"]) for split, c in built if c.meta["augmentation"] == 0)
+def test_a_relocating_build_moves_a_share_of_the_train_targets_only(scenes, built):
+    assert not any(c.meta["relocated"] for _, c in built)  # the default moves nothing
+    relocating = build_cases(scenes, dataclasses.replace(CONFIG, relocate_fraction=0.1))
+    moved = Counter((split, c.meta["relocated"]) for split, c in relocating if c.meta["augmentation"] == 0)
     share = moved["train", True] / (moved["train", True] + moved["train", False])
-    assert 0.03 < share < 0.25  # relocate_fraction 0.1 of the targets, a target giving up to 3 cases
+    assert 0.03 < share < 0.25  # 0.1 of the targets, a target giving up to 3 cases
     assert not any(relocated for (split, relocated) in moved if split != "train")
 
 

@@ -8,7 +8,7 @@ refer to), and emits a bounded number of (target, relation, anchor(s)) cases wit
 convention's style (`app.data.templates`). Targets are any object but the room's shell (doors, windows and
 tables as well as mugs), less the fragments of their class (`fragment_ids`).
 
-A share of the train targets (`relocate_fraction`, 0.1) is first moved to another resting place of its
+With `relocate_fraction` > 0 a share of the train targets is first moved to another resting place of its
 room (`app.data.relocate`), so that where a target rests follows no one source's habits.
 
 Relations are computed once per target, over the whole map, from the clean boxes in the layout's frame.
@@ -168,7 +168,7 @@ class BuildConfig:
     # Targets of every size (`is_grounding_target`), or only small and medium movable ones.
     all_targets: bool = True
     # Share of the train targets moved to another resting place of their region first (`app.data.relocate`).
-    relocate_fraction: float = 0.1
+    relocate_fraction: float = 0.0
 
     def shift(self, split: str) -> Shift | None:
         """How the split's shifted maps are drawn; None for the canonical frame only."""

@@ -60,8 +60,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     build.add_argument(
         "--relocate-fraction",
         type=float,
-        default=0.1,
-        help="share of train targets first moved to another resting place of their room (default 0.1)",
+        default=0.0,
+        help="share of train targets first moved to another resting place of their room (default 0)",
     )
     build.add_argument("--no-progress", action="store_true", help="no progress bar")
     build.set_defaults(func=build_command)
