@@ -73,33 +73,29 @@ def relocated(
     else:
         low_all, high_all = _aabb(local)
         lo_xy, hi_xy = low_all.min(axis=0)[:2], high_all.max(axis=0)[:2]
-    supports = [
-        o
-        for o in local
-        if not is_room_shell(o.label)
-        and float(o.max_corner[2]) - floor <= SUPPORT_MAX_HEIGHT
-        and np.all(o.max_corner[:2] - o.min_corner[:2] >= 2 * half[:2])
-    ]
     # Floors and ceilings are slabs the target may touch; walls and furniture it may not enter.
     solid = [o for o in local if not in_classes(o.label, FLOOR_CEILING)]
-    others_low, others_high = _aabb(solid)
+    solid_low, solid_high = _aabb(solid)
+    supports = [
+        k
+        for k, o in enumerate(solid)
+        if not is_room_shell(o.label)
+        and float(solid_high[k, 2]) - floor <= SUPPORT_MAX_HEIGHT
+        and np.all(solid_high[k, :2] - solid_low[k, :2] >= 2 * half[:2])
+    ]
     for _ in range(TRIES):
-        on_floor = not supports or rng.random() < FLOOR_PROBABILITY
-        if on_floor:
-            area_lo, area_hi, base, skip = lo_xy, hi_xy, floor, -1
+        keep = np.ones(len(solid), dtype=bool)
+        if not supports or rng.random() < FLOOR_PROBABILITY:
+            area_lo, area_hi, base = lo_xy, hi_xy, floor
         else:
-            skip = int(rng.integers(len(supports)))
-            support = supports[skip]
-            area_lo, area_hi = support.min_corner[:2], support.max_corner[:2]
-            base = float(support.max_corner[2])
+            k = supports[int(rng.integers(len(supports)))]
+            area_lo, area_hi, base = solid_low[k, :2], solid_high[k, :2], float(solid_high[k, 2])
+            keep[k] = False  # the target rests on it
         if np.any(area_hi - area_lo - 2 * half[:2] < 1e-6):
             continue
         xy = rng.uniform(area_lo + half[:2], area_hi - half[:2])
         centre = np.array([xy[0], xy[1], base + half[2]])
-        keep = np.ones(len(solid), dtype=bool)
-        if skip >= 0:
-            keep[solid.index(supports[skip])] = False
-        if overlap_share(centre - half, centre + half, others_low[keep], others_high[keep]) > MAX_OVERLAP:
+        if overlap_share(centre - half, centre + half, solid_low[keep], solid_high[keep]) > MAX_OVERLAP:
             continue
         return target.model_copy(update={"center": [float(v) for v in centre]})
     return None
