@@ -107,9 +107,7 @@ def test_no_place_is_found_for_a_target_wider_than_its_room():
     assert relocated(sofa, others, ROOM, np.random.default_rng(0)) is None
 
 
-CONFIG = BuildConfig(
-    seed=3, augment=1, max_cases_per_scene=30, unseen_fraction=0.3, calib_fraction=0.3, relocate_fraction=0.0
-)
+CONFIG = BuildConfig(seed=3, augment=1, max_cases_per_scene=30, unseen_fraction=0.3, calib_fraction=0.3)
 
 
 @pytest.fixture(scope="module")

@@ -388,15 +388,20 @@ def _case(
 
 def _moved(
     target: SceneObject,
+    split: str,
     others: Sequence[SceneObject],
     region: Region | None,
+    fraction: float,
     rng: np.random.Generator,
     notes: Counter[str],
-) -> SceneObject:
-    """The target at another resting place of its region (`relocated`), or where it was if none is found."""
+) -> SceneObject | None:
+    """A train target, drawn with probability `fraction`, at another resting place of its region
+    (`relocated`); None for every other target and where no place is found."""
+    if split != "train" or rng.random() >= fraction:
+        return None
     moved = relocated(target, others, region, rng)
     notes["targets_relocated" if moved is not None else "targets_without_a_place_to_move_to"] += 1
-    return target if moved is None else moved
+    return moved
 
 
 def _map_cases(
@@ -423,11 +428,13 @@ def _map_cases(
         target = by_id[target_id]
         others = [o for o in layout.objects if o.id != target_id]
         placements = None if layout.placements is None else layout.placements.get(target_id, {})
-        if split_of_target[target_id] == "train" and moves.random() < config.relocate_fraction:
-            target = _moved(target, others, regions.get(target.region_id or ""), moves, notes)
+        region = regions.get(target.region_id or "")
+        moved = _moved(
+            target, split_of_target[target_id], others, region, config.relocate_fraction, moves, notes
+        )
+        if moved is not None:
             # The source's placements are where it stood; on/in now come from the boxes.
-            placements = placements if target is by_id[target_id] else None
-        was_moved = target is not by_id[target_id]
+            target, placements = moved, None
         convention = _draw_convention(target, others, config, rng)
         if convention is None:
             notes["targets_outside_every_convention"] += 1
@@ -446,7 +453,7 @@ def _map_cases(
             notes[f"targets_without_relation_{convention.value}"] += 1
             continue
         candidates.append(
-            _Candidate(target, split_of_target[target_id], convention, others, by_relation, was_moved)
+            _Candidate(target, split_of_target[target_id], convention, others, by_relation, moved is not None)
         )
     # A stable sort keeps the shuffled order among equally rare targets.
     candidates.sort(key=lambda c: min(balancers[c.convention].emitted[r] for r in c.by_relation))

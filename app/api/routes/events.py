@@ -185,6 +185,7 @@ class EventStreamResponse(StreamingResponse):
 
 # -- the routes ----------------------------------------------------------------------------------------------
 
+
 @asynccontextmanager
 async def end_streams_on_exit(app: FastAPI) -> AsyncIterator[None]:
     """The router's lifespan: on SIGTERM or SIGINT every event stream ends at once, and the signal goes on to
@@ -233,8 +234,8 @@ _STREAM_DESCRIPTION = (
     "observation batch, a scene-graph replacement, another update), one per deletion (its last event), and "
     "one per utterance not fused (`cause.fused` false, the same version);\n"
     "- `event: sync`, data `StreamSync`: read the current state now (`summary_url` or `sessions_url`); every "
-    "event after it follows. First on a stream that resumes nothing (\"start\") or that asked to resume from "
-    "an id older than the history (\"expired\"); \"gap\" where events were lost on the way;\n"
+    'event after it follows. First on a stream that resumes nothing ("start") or that asked to resume from '
+    'an id older than the history ("expired"); "gap" where events were lost on the way;\n'
     "- `: keep-alive` comments when the stream is quiet; `retry:` on the first frame.\n\n"
     "Every event has an `id:`; reconnect with `Last-Event-ID: <id>` to get the events after it. Order: by "
     "version within a session. The stream ends after `events_max_stream_s` (resume), after its session's "
@@ -277,6 +278,7 @@ FRAME_SCHEMA: dict[str, Any] = {
 def _responses(what: str) -> dict[int | str, dict[str, Any]]:
     stream = {"text/event-stream": {"itemSchema": FRAME_SCHEMA}}
     return {200: {"description": f"{what}\n\n{_STREAM_DESCRIPTION}", "content": stream}, **_ERRORS}
+
 
 LastEventIdHeader = Annotated[
     str | None,
