@@ -7,9 +7,11 @@ object metadata) with eight hand-written utterances, one per target removed from
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -781,6 +783,66 @@ def test_the_tail_floor_raises_every_tail_weight_before_the_scales_are_fitted():
     assert (
         np.mean(served.nll(targets)) < np.mean(apply_calibration(model, relations, plain).nll(targets)) - 0.3
     )
+
+
+def test_the_nees_fit_makes_each_relations_moment_anees_three_where_the_nll_fit_does_not():
+    """Targets from a core with a 5% wide tail; the model serves a 20% tail, as a floor would. The NLL-optimal
+    scale fits the core and leaves the moment-matched ANEES far under 3 (the wide tail carries the moments);
+    the NEES-consistent scale makes it 3 / margin per relation (one pooled group, so no shrinkage)."""
+    rng = np.random.default_rng(13)
+    n = 8000
+    core, tail = np.tile(np.eye(3) * 0.04, (n, 1, 1)), np.tile(np.eye(3) * 1.0, (n, 1, 1))
+    in_tail = rng.uniform(size=n) < 0.05
+    targets = np.where(in_tail[:, None], rng.normal(size=(n, 3)), rng.normal(size=(n, 3)) * 0.2)
+    model = Densities(np.zeros((n, 3)), core, tail, np.full(n, 0.2))
+    relations = ["below"] * n
+
+    def served_anees(calibration: dict[str, Any]) -> float:
+        served = apply_calibration(model, relations, calibration)
+        return anees(served.means, served.moment_covariances, targets)
+
+    by_nll = fit_calibration(model, targets, relations)
+    by_nees = fit_calibration(model, targets, relations, margin=1.25, fit="nees")
+    assert by_nees["fit"] == "nees" and by_nll["fit"] == "nll"
+    assert served_anees(by_nees) == pytest.approx(3.0 / 1.25, rel=1e-9)
+    assert served_anees(by_nll) < 2.0
+    with pytest.raises(ValueError, match="calibration fit"):
+        fit_calibration(model, targets, relations, fit="ece")
+
+
+def test_a_training_config_names_its_calibration_fit_and_an_unknown_one_fails_before_training():
+    from app.training.lsm import TrainConfig
+
+    data = {"train": "train.jsonl", "calib": "calib.jsonl"}
+    assert TrainConfig.from_dict({"data": data}).calibration_fit == "nll"
+    assert TrainConfig.from_dict({"data": data, "calibration_fit": "nees"}).calibration_fit == "nees"
+    with pytest.raises(ValueError, match="calibration_fit must be one of"):
+        TrainConfig.from_dict({"data": data, "calibration_fit": "ece"})
+
+
+def test_recalibrate_keeps_the_weights_and_writes_its_calibration_and_config(tiny_checkpoint, tmp_path):
+    from app.training.lsm import TrainConfig, recalibrate
+
+    config = TrainConfig.from_dict(
+        {
+            "data": {"train": str(CASES), "calib": str(CASES), "embedding_cache": str(tmp_path / "emb.npz")},
+            "model": TINY,
+            "version": "tiny-recalibrated",
+            "calibration_margin": 1.25,
+            "calibration_fit": "nees",
+        }
+    )
+    out = tmp_path / "recalibrated"
+    report = recalibrate(tiny_checkpoint, config, out)
+    before, _ = load_checkpoint(tiny_checkpoint)
+    after, meta = load_checkpoint(out)
+    for name, tensor in before.state_dict().items():
+        assert torch.equal(tensor, after.state_dict()[name])
+    assert meta["version"] == "tiny-recalibrated" and meta["calibration"]["fit"] == "nees"
+    assert meta["calibration"]["margin"] == 1.25 and meta["calibration"] == report["calibration"]
+    written = json.loads((out / "train_config.json").read_text(encoding="utf-8"))
+    assert written["calibration_fit"] == "nees" and written["version"] == "tiny-recalibrated"
+    assert (out / "metrics.md").is_file() and "calib" in report["splits"]
 
 
 def test_a_split_knows_each_samples_room_and_convention_and_the_report_uses_them(tmp_path, cases):

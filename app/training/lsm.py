@@ -59,6 +59,7 @@ from app.training.search import golden_section
 
 log = logging.getLogger(__name__)
 MASSES = (0.5, 0.9, 0.95)
+CALIBRATION_FITS = ("nll", "nees")  # how fit_calibration picks each group's scale
 _HDR_DRAWS = 1000
 
 
@@ -102,6 +103,7 @@ class TrainConfig:
     calibration_margin: float = 1.0  # every fitted scale times this (see fit_calibration) ...
     calibration_margins: dict[str, float] = field(default_factory=dict)  # ... or this, per relation
     calibration_tail_floor: float = 0.0  # every tail weight a -> a + (1 - a) eps (see fit_calibration)
+    calibration_fit: str = "nll"  # each scale NLL-optimal or NEES-consistent ("nees"), see fit_calibration
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> TrainConfig:
@@ -114,6 +116,10 @@ class TrainConfig:
             )
             raise ValueError(msg)
         data = DataConfig(**values["data"])
+        fit = str(values.get("calibration_fit", "nll"))
+        if fit not in CALIBRATION_FITS:
+            msg = f"training config: calibration_fit must be one of {CALIBRATION_FITS}, not {fit!r}"
+            raise ValueError(msg)
         if data.calib is None and data.val_seen is None:
             msg = "training config: data needs calib (or val_seen) for checkpoint selection and calibration"
             raise ValueError(msg)
@@ -126,6 +132,7 @@ class TrainConfig:
             calibration_margin=float(values.get("calibration_margin", 1.0)),
             calibration_margins={k: float(v) for k, v in (values.get("calibration_margins") or {}).items()},
             calibration_tail_floor=float(values.get("calibration_tail_floor", 0.0)),
+            calibration_fit=fit,
         )
 
     @classmethod
@@ -434,29 +441,41 @@ def fit_calibration(
     margin: float = 1.0,
     margins: dict[str, float] | None = None,
     tail_floor: float = 0.0,
+    fit: str = "nll",
 ) -> dict[str, Any]:
-    """Covariance scales c_k per group k: the NLL-minimising scale of every covariance of the group's
-    densities, shrunk towards the pooled one, log c_k = (n_k log c^_k + K log c^) / (n_k + K), K =
+    """Covariance scales c_k per group k: the scale c^_k of every covariance of the group's densities that
+    `fit` asks for, shrunk towards the pooled one, log c_k = (n_k log c^_k + K log c^) / (n_k + K), K =
     `prior_cases`, so that a group with few calibration cases does not get a noisy scale; then times
     `margins[k]` (default `margin`), for data further from training than the calibration split. With
     `tail_floor` eps every tail weight is first raised to a + (1 - a) eps (`calibrated_tail_weight`) and the
-    scales fitted to those densities. The model card says how the margins and eps were chosen."""
+    scales fitted to those densities. The model card says how the margins and eps were chosen.
+
+    `fit` "nll": c^ minimises the NLL of the densities. "nees": c^ = ANEES / 3 of their moment-matched
+    covariances, so that the scaled densities' ANEES is 3 (NEES consistency); the two agree for Gaussians,
+    not for a mixture with a tail, whose NLL-optimal scale leaves the moment-matched ANEES wherever the tail
+    puts it, relation by relation."""
+    if fit not in CALIBRATION_FITS:
+        msg = f"calibration fit must be one of {CALIBRATION_FITS}, not {fit!r}"
+        raise ValueError(msg)
     margins = margins or {}
     densities = densities.with_tail_floor({"tail_floor": tail_floor})
     names = np.asarray(groups)
-    pooled = _nll_optimal_scale(densities, targets)
+    fitted_scale = _nll_optimal_scale if fit == "nll" else _nees_consistent_scale
+    pooled = fitted_scale(densities, targets)
     per_group, counts = {}, {}
     for g in sorted(set(groups)):
         mask = names == g
-        own = _nll_optimal_scale(densities.take(mask), targets[mask])
+        own = fitted_scale(densities.take(mask), targets[mask])
         n = int(mask.sum())
         counts[g] = n
         shrunk = math.exp((n * math.log(own) + prior_cases * math.log(pooled)) / (n + prior_cases))
         per_group[g] = float(margins.get(g, margin) * shrunk)
+    criterion = "NLL-optimal" if fit == "nll" else "NEES-consistent (ANEES / 3)"
     return {
-        "method": "covariance scale per relation (and for region hypotheses): the NLL-optimal scale on the "
+        "method": f"covariance scale per relation (and for region hypotheses): the {criterion} scale on the "
         "calibration split, shrunk to the pooled one in log space, times the margin; tail weights raised to "
         "a + (1 - a) tail_floor",
+        "fit": fit,
         "prior_cases": prior_cases,
         "tail_floor": tail_floor,
         "margin": margin,
@@ -465,6 +484,11 @@ def fit_calibration(
         "per_relation": per_group,
         "cases": counts,
     }
+
+
+def _nees_consistent_scale(densities: Densities, targets: np.ndarray) -> float:
+    """ANEES / 3 of the moment-matched covariances: the scale whose scaled densities have ANEES 3."""
+    return float(np.mean(nees(densities.means, densities.moment_covariances, targets))) / 3.0
 
 
 def _nll_optimal_scale(densities: Densities, targets: np.ndarray) -> float:
@@ -567,7 +591,7 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
     opt = config.optim
     seed_everything(opt.seed)
     torch.set_num_threads(opt.threads)
-    (out_dir / "train_config.json").write_text(json.dumps(asdict(config), indent=2) + "\n", encoding="utf-8")
+    write_config(config, out_dir)
 
     t0 = time.perf_counter()
     splits = _load_splits(config)
@@ -628,6 +652,7 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
         config.calibration_margin,
         config.calibration_margins,
         config.calibration_tail_floor,
+        config.calibration_fit,
     )
     training = {
         "data": {n: {"samples": len(s.samples), "skipped_cases": s.skipped} for n, s in splits.items()},
@@ -659,9 +684,11 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
 
 def recalibrate(model_dir: Path, config: TrainConfig, out_dir: Path) -> dict[str, Any]:
     """The checkpoint in `model_dir` with its calibration fitted anew on the config's calib split (its
-    margin and prior), written to `out_dir` with its report: what a change of the calibration costs without
-    training again."""
+    margin and prior), written to `out_dir` with its report and the config: what a change of the calibration
+    costs without training again."""
     model, meta = load_checkpoint(Path(model_dir))
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    write_config(config, Path(out_dir))
     splits = _load_splits(config, include_train=False)
     cache = _embedding_cache(config, Path(out_dir))
     packed = {name: PackedSamples(split.samples, cache) for name, split in splits.items()}
@@ -676,6 +703,7 @@ def recalibrate(model_dir: Path, config: TrainConfig, out_dir: Path) -> dict[str
         config.calibration_margin,
         config.calibration_margins,
         config.calibration_tail_floor,
+        config.calibration_fit,
     )
     extra = {k: v for k, v in meta.items() if k != "model"} | {
         "calibration": calibration,
@@ -797,6 +825,11 @@ def _format_record(record: dict[str, Any]) -> str:
         if isinstance(r, dict) and "rmse" in r:
             parts.append(f"{name}: rmse {r['rmse']:.3f} nll {r['nll_mean']:.3f} anees {r['anees']:.2f}")
     return " | ".join(parts)
+
+
+def write_config(config: TrainConfig, out_dir: Path) -> None:
+    """`train_config.json`: the configuration that made the checkpoint in `out_dir` (and its calibration)."""
+    (out_dir / "train_config.json").write_text(json.dumps(asdict(config), indent=2) + "\n", encoding="utf-8")
 
 
 def write_report(report: dict[str, Any], out_dir: Path) -> None:
