@@ -31,7 +31,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
         default=None,
         metavar="MODEL_DIR",
         help="skip training: fit the calibration of the checkpoint in MODEL_DIR anew on the config's calib "
-        "split (its margin) and write the recalibrated checkpoint and its report to --out",
+        "split (its fit, margins and tail floor) and write the recalibrated checkpoint, its report and the "
+        "config to --out",
     )
     parser.set_defaults(func=run)
 

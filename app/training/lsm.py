@@ -15,9 +15,10 @@ Splits (all grounding-case files; the true grounding of a case is `hypotheses[0]
   source.
 
 Calibration: one covariance scale c_k per relation (and one for region hypotheses), Sigma <- c_k Sigma for
-the core and the tail alike, each the NLL-minimising scale on calib shrunk towards the pooled one in log
-space as if `calibration_prior_cases` more cases had the pooled value (`fit_calibration`). For a single
-Gaussian the NLL-optimal scale is exactly ANEES / 3.
+the core and the tail alike, each the NLL-minimising scale on calib (`calibration_fit: nll`) or the one
+that makes its moment-matched ANEES 3 (`nees`), shrunk towards the pooled one in log space as if
+`calibration_prior_cases` more cases had the pooled value, then times a margin (`fit_calibration`). For a
+single Gaussian the two fits agree: the NLL-optimal scale is exactly ANEES / 3.
 
 Metrics are those of the served density p(y | h) = (1 - a) N(mu, Sigma) + a N(mu, Sigma + Delta): NLL of
 the density, ANEES of its moment-matched covariance Sigma + a Delta, HDR coverage of the density (Monte
