@@ -643,18 +643,7 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
     bar.close()
     model.load_state_dict(best_state)
 
-    calib = splits["calib"]
-    densities = predict(model, packed["calib"], calib.samples, opt.eval_batch_size)
-    calibration = fit_calibration(
-        densities,
-        calib.targets,
-        calib.groups,
-        config.calibration_prior_cases,
-        config.calibration_margin,
-        config.calibration_margins,
-        config.calibration_tail_floor,
-        config.calibration_fit,
-    )
+    calibration = _calibrate(model, packed["calib"], splits["calib"], config)
     training = {
         "data": {n: {"samples": len(s.samples), "skipped_cases": s.skipped} for n, s in splits.items()},
         "files": asdict(config.data),
@@ -683,6 +672,22 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
     return report
 
 
+def _calibrate(
+    model: LanguageSensorModel, packed: PackedSamples, calib: Split, config: TrainConfig
+) -> dict[str, Any]:
+    """The calibration of `model` fitted on the `calib` split as the config says (`fit_calibration`)."""
+    return fit_calibration(
+        predict(model, packed, calib.samples, config.optim.eval_batch_size),
+        calib.targets,
+        calib.groups,
+        config.calibration_prior_cases,
+        config.calibration_margin,
+        config.calibration_margins,
+        config.calibration_tail_floor,
+        config.calibration_fit,
+    )
+
+
 def recalibrate(model_dir: Path, config: TrainConfig, out_dir: Path) -> dict[str, Any]:
     """The checkpoint in `model_dir` with its calibration fitted anew on the config's calib split (its
     margin and prior), written to `out_dir` with its report and the config: what a change of the calibration
@@ -694,18 +699,7 @@ def recalibrate(model_dir: Path, config: TrainConfig, out_dir: Path) -> dict[str
     cache = _embedding_cache(config, Path(out_dir))
     packed = {name: PackedSamples(split.samples, cache) for name, split in splits.items()}
     cache.save()
-    calib = splits["calib"]
-    densities = predict(model, packed["calib"], calib.samples, config.optim.eval_batch_size)
-    calibration = fit_calibration(
-        densities,
-        calib.targets,
-        calib.groups,
-        config.calibration_prior_cases,
-        config.calibration_margin,
-        config.calibration_margins,
-        config.calibration_tail_floor,
-        config.calibration_fit,
-    )
+    calibration = _calibrate(model, packed["calib"], splits["calib"], config)
     extra = {k: v for k, v in meta.items() if k != "model"} | {
         "calibration": calibration,
         "version": config.version,
