@@ -37,6 +37,7 @@ import math
 import random
 import time
 import zlib
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -60,7 +61,6 @@ from app.training.search import golden_section
 
 log = logging.getLogger(__name__)
 MASSES = (0.5, 0.9, 0.95)
-CALIBRATION_FITS = ("nll", "nees")  # how fit_calibration picks each group's scale
 _HDR_DRAWS = 1000
 
 
@@ -458,10 +458,10 @@ def fit_calibration(
     if fit not in CALIBRATION_FITS:
         msg = f"calibration fit must be one of {CALIBRATION_FITS}, not {fit!r}"
         raise ValueError(msg)
+    criterion, fitted_scale = _SCALE_FITS[fit]
     margins = margins or {}
     densities = densities.with_tail_floor({"tail_floor": tail_floor})
     names = np.asarray(groups)
-    fitted_scale = _nll_optimal_scale if fit == "nll" else _nees_consistent_scale
     pooled = fitted_scale(densities, targets)
     per_group, counts = {}, {}
     for g in sorted(set(groups)):
@@ -471,7 +471,6 @@ def fit_calibration(
         counts[g] = n
         shrunk = math.exp((n * math.log(own) + prior_cases * math.log(pooled)) / (n + prior_cases))
         per_group[g] = float(margins.get(g, margin) * shrunk)
-    criterion = "NLL-optimal" if fit == "nll" else "NEES-consistent (ANEES / 3)"
     return {
         "method": f"covariance scale per relation (and for region hypotheses): the {criterion} scale on the "
         "calibration split, shrunk to the pooled one in log space, times the margin; tail weights raised to "
@@ -510,6 +509,14 @@ def _nll_optimal_scale(densities: Densities, targets: np.ndarray) -> float:
         return float(-np.sum(peak + np.log(np.exp(core - peak) + np.exp(tail - peak))))
 
     return math.exp(golden_section(total, -4.0, 4.0))
+
+
+# fit -> (its name in the calibration record, the scale it fits to a group's densities)
+_SCALE_FITS: dict[str, tuple[str, Callable[[Densities, np.ndarray], float]]] = {
+    "nll": ("NLL-optimal", _nll_optimal_scale),
+    "nees": ("NEES-consistent (ANEES / 3)", _nees_consistent_scale),
+}
+CALIBRATION_FITS = tuple(_SCALE_FITS)  # what `calibration_fit` may name
 
 
 def apply_calibration(densities: Densities, groups: list[str], calibration: dict[str, Any]) -> Densities:
