@@ -12,8 +12,8 @@ import pytest
 from app.data.build import BuildConfig, build_cases, read_ai2thor, read_scannet
 from app.data.conventions import Convention, holds
 from app.data.houses import room_map
-from app.data.relocate import MAX_OVERLAP, SUPPORT_MAX_HEIGHT, floor_height, overlap_share, relocated
-from app.grounding.box_relations import FLOOR_CEILING, TrueReading
+from app.data.relocate import MAX_OVERLAP, SUPPORT_MAX_HEIGHT, floor_height, relocated
+from app.grounding.box_relations import FLOOR_CEILING, Box, TrueReading, volume_overlap
 from app.scene_graph.model import Region, SceneObject
 from app.vocabulary import in_classes
 
@@ -70,7 +70,7 @@ def test_a_moved_target_rests_on_the_floor_or_on_a_top_inside_its_region_and_ins
             for o in solid:
                 if o in supports:
                     continue
-                share = overlap_share(low, high, o.min_corner[None], o.max_corner[None])
+                share = float(volume_overlap(Box.of(moved), Box.of(o)) / np.prod(high - low))
                 assert share <= MAX_OVERLAP + 1e-9, (layout.map_id, target.label, o.label)
     assert on_floor > 20 and on_top > 20
 

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from app.grounding.box_relations import FLOOR_CEILING, is_room_shell
+from app.grounding.box_relations import FLOOR_CEILING, Box, is_room_shell, volume_overlap
 from app.scene_graph.model import Region, SceneObject
 from app.vocabulary import in_classes
 
@@ -28,21 +28,11 @@ MAX_OVERLAP = 0.05
 TRIES = 20
 
 
-def _aabb(objects: Sequence[SceneObject]) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) lower and upper corners of the axis-aligned boxes around the objects."""
-    if not objects:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    return np.stack([o.min_corner for o in objects]), np.stack([o.max_corner for o in objects])
-
-
-def overlap_share(
-    low: np.ndarray, high: np.ndarray, others_low: np.ndarray, others_high: np.ndarray
-) -> float:
-    """The largest share of the box [low, high] that lies inside any one of the other boxes."""
-    if len(others_low) == 0:
+def _overlap_share(box: Box, others: Box) -> float:
+    """The largest share of `box` (one box) that lies inside any one of `others` (N boxes)."""
+    if len(others.lo) == 0:
         return 0.0
-    inside = np.clip(np.minimum(high, others_high) - np.maximum(low, others_low), 0.0, None)
-    return float(np.max(np.prod(inside, axis=1)) / np.prod(high - low))
+    return float(np.max(volume_overlap(box, others)) / np.prod(box.size))
 
 
 def floor_height(objects: Sequence[SceneObject]) -> float:
@@ -71,11 +61,12 @@ def relocated(
         lo_xy = np.asarray(region.center[:2]) - np.asarray(region.size[:2]) / 2
         hi_xy = np.asarray(region.center[:2]) + np.asarray(region.size[:2]) / 2
     else:
-        low_all, high_all = _aabb(local)
-        lo_xy, hi_xy = low_all.min(axis=0)[:2], high_all.max(axis=0)[:2]
+        around = Box.of(local)
+        lo_xy, hi_xy = around.lo.min(axis=0)[:2], around.hi.max(axis=0)[:2]
     # Floors and ceilings are slabs the target may touch; walls and furniture it may not enter.
     solid = [o for o in local if not in_classes(o.label, FLOOR_CEILING)]
-    solid_low, solid_high = _aabb(solid)
+    solid_boxes = Box.of(solid)
+    solid_low, solid_high = solid_boxes.lo, solid_boxes.hi
     supports = [
         k
         for k, o in enumerate(solid)
@@ -95,7 +86,7 @@ def relocated(
             continue
         xy = rng.uniform(area_lo + half[:2], area_hi - half[:2])
         centre = np.array([xy[0], xy[1], base + half[2]])
-        if overlap_share(centre - half, centre + half, solid_low[keep], solid_high[keep]) > MAX_OVERLAP:
+        if _overlap_share(Box(centre - half, centre + half), solid_boxes.take(keep)) > MAX_OVERLAP:
             continue
         return target.model_copy(update={"center": [float(v) for v in centre]})
     return None
