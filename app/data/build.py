@@ -1,4 +1,4 @@
-"""Grounding cases from real layouts (ScanNet scans, AI2-THOR rooms), with relations computed from real boxes.
+"""Grounding cases from layouts (ScanNet scans, AI2-THOR rooms, synthetic rooms), relations from their boxes.
 
 The builder turns layouts (`app.data.layouts`) into maps: every room alone, and houses of several rooms of
 one source (`app.data.houses`). For every map it picks target objects, removes each target from the scene
@@ -65,6 +65,7 @@ from app.data.layouts import (
     is_target_candidate,
     read_ai2thor,
     read_scannet,
+    read_synthetic,
     room_key,
     split_camel_case,
     thor_placement_relation,
@@ -89,6 +90,7 @@ __all__ = [
     "is_target_candidate",
     "read_ai2thor",
     "read_scannet",
+    "read_synthetic",
     "room_key",
     "split_camel_case",
     "thor_placement_relation",
@@ -97,7 +99,7 @@ __all__ = [
 ]
 
 SPLITS = ("train", "val_seen", "val_unseen", "calib")
-SOURCES = ("scannet", "ai2thor")
+SOURCES = ("scannet", "ai2thor", "synthetic")
 
 # Targets whose box volume is below this fraction of their label's median volume are fragments (see
 # `fragment_ids`); the median needs at least FRAGMENT_MIN_COUNT instances of the label.

@@ -1,5 +1,6 @@
-"""`vlmap data build` (grounding cases from real ScanNet / AI2-THOR layouts, `app.data.build`) and
-`vlmap data vla3d` (VLA-3D referential statements as grounding cases)."""
+"""`vlmap data build` (grounding cases from ScanNet / AI2-THOR / synthetic layouts, `app.data.build`),
+`vlmap data synth` (synthetic rooms, `app.data.synthetic`) and `vlmap data vla3d` (VLA-3D referential
+statements as grounding cases)."""
 
 from __future__ import annotations
 
@@ -23,6 +24,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     )
     build.add_argument("--scannet", type=Path, default=None, help="ScanNet scenes (JSONL)")
     build.add_argument("--ai2thor", type=Path, default=None, help="AI2-THOR scenes (JSONL)")
+    build.add_argument(
+        "--synthetic", type=Path, default=None, help="synthetic rooms (JSONL, from `vlmap data synth`)"
+    )
     build.add_argument("--out", type=Path, required=True, help="output directory")
     build.add_argument("--seed", type=int, default=0)
     build.add_argument(
@@ -66,6 +70,18 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     build.add_argument("--no-progress", action="store_true", help="no progress bar")
     build.set_defaults(func=build_command)
 
+    synth = sub.add_parser(
+        "synth",
+        help="synthetic furnished rooms, a third source of layouts for `data build --synthetic`",
+        description="Write ROOMS furnished rooms (bedrooms, kitchens, offices, ...) drawn from broad "
+        "furniture and room ranges, one a line in the scans' format (app.data.synthetic). Room k depends "
+        "only on the seed and k.",
+    )
+    synth.add_argument("--rooms", type=int, default=200, help="how many rooms (default 200)")
+    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--out", type=Path, required=True, help="rooms file to write (JSONL)")
+    synth.set_defaults(func=synth_command)
+
     vla3d = sub.add_parser(
         "vla3d",
         help="VLA-3D referential statements as grounding cases",
@@ -91,11 +107,11 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
 def build_command(args: argparse.Namespace) -> int:
     import time
 
-    from app.data.build import SPLITS, BuildConfig, read_ai2thor, read_scannet, write_build
+    from app.data.build import SPLITS, BuildConfig, read_ai2thor, read_scannet, read_synthetic, write_build
     from app.data.conventions import Convention
 
-    if args.scannet is None and args.ai2thor is None:
-        msg = "give --scannet and/or --ai2thor"
+    if args.scannet is None and args.ai2thor is None and args.synthetic is None:
+        msg = "give --scannet, --ai2thor and/or --synthetic"
         raise SystemExit(msg)
     if args.augment < 0 or args.max_cases_per_scene < 1 or args.cases_per_target < 1:
         msg = "--augment must be >= 0, --max-cases-per-scene and --cases-per-target >= 1"
@@ -117,6 +133,8 @@ def build_command(args: argparse.Namespace) -> int:
         scenes += read_scannet(args.scannet)
     if args.ai2thor is not None:
         scenes += read_ai2thor(args.ai2thor)
+    if args.synthetic is not None:
+        scenes += read_synthetic(args.synthetic)
     config = BuildConfig(
         seed=args.seed,
         augment=args.augment,
@@ -150,6 +168,17 @@ def build_command(args: argparse.Namespace) -> int:
                 print(f"{split:<11} {source:<8} {convention:<6} {cells} {sum(counts.values()):>8}")
     print("maps: " + json.dumps({s: dict(c) for s, c in summary.maps.items()}))
     print("notes: " + json.dumps(dict(sorted(summary.notes.items()))))
+    return 0
+
+
+def synth_command(args: argparse.Namespace) -> int:
+    from app.data.synthetic import write_synthetic_rooms
+
+    if args.rooms < 1:
+        msg = "--rooms must be >= 1"
+        raise SystemExit(msg)
+    objects = write_synthetic_rooms(args.out, args.rooms, args.seed)
+    print(f"wrote {args.rooms} rooms ({objects} objects) to {args.out}")
     return 0
 
 

@@ -5,11 +5,11 @@ layout (turned by a random quarter turn, so its boxes stay axis-aligned), rooms 
 on a floor at z = 0, separated by a gap of ROOM_GAP or touching (a shared wall, with probability
 SHARED_WALL_PROBABILITY); with probability SECOND_FLOOR_PROBABILITY a house of three rooms or more puts
 some of them on a second floor, FLOOR_HEIGHT above the first and always above its rooms' tops
-(STOREY_CLEARANCE), so that no two rooms overlap. Every room is one `Region` (AI2-THOR rooms named by their
-type, ScanNet rooms "room 1", "room 2", ...: a name inferred from furniture would be wrong for the scans of
-offices, classrooms and studios), every object's `region_id` names its room, and object ids are prefixed by
-the room's index ("2:17") so that they stay unique. Relations are computed over the whole house afterwards:
-its look-alikes (the chairs of every room), distances and z ranges are a real house's.
+(STOREY_CLEARANCE), so that no two rooms overlap. Every room is one `Region` (AI2-THOR and synthetic rooms
+named by their type, ScanNet rooms "room 1", "room 2", ...: a name inferred from furniture would be wrong for
+the scans of offices, classrooms and studios), every object's `region_id` names its room, and object ids are
+prefixed by the room's index ("2:17") so that they stay unique. Relations are computed over the whole house
+afterwards: its look-alikes (the chairs of every room), distances and z ranges are a real house's.
 
 AI2-THOR houses take at most THOR_ROOM_LIMITS rooms of each type (one kitchen, one living room, ...); the
 RoboTHOR apartments are whole apartments already and are not joined. ScanNet houses never hold two scans of
@@ -143,7 +143,7 @@ def join_rooms(scenes: Sequence[LayoutScene], map_id: str, rng: np.random.Genera
     origin: dict[str, tuple[str, str]] = {}
     for k, ((scene, centres, sizes, extent), offset) in enumerate(zip(rooms, offsets, strict=True)):
         region_id = str(k)
-        name = scene.region.name if scene.source == "ai2thor" else f"room {k + 1}"
+        name = scene.region.name if scene.room_type else f"room {k + 1}"
         regions.append(
             Region(id=region_id, name=name, center=(offset + 0.5 * extent).tolist(), size=extent.tolist())
         )

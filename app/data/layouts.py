@@ -1,4 +1,5 @@
-"""Real layouts read for the case builder and the simulator: ScanNet scans and AI2-THOR rooms, normalised.
+"""Layouts read for the case builder and the simulator: ScanNet scans, AI2-THOR rooms and synthetic rooms,
+normalised.
 
 * ScanNet (`scannet_train_scenes.jsonl`): axis-aligned boxes and labels; on/in will come from the boxes.
 * AI2-THOR (`ai2thor_scenes.jsonl`): CamelCase object types become words ("DiningTable" -> "dining table",
@@ -6,6 +7,7 @@
   "in" by receptacle type (`THOR_RECEPTACLE_RELATION`). "On the floor" placements are dropped (the floor is
   never an anchor). A parent id missing from the scene falls back to its base object when the id names a
   part ("Sink|...|SinkBasin" -> "Sink|..."), else the placement is skipped; both are counted in the notes.
+* Synthetic rooms (`vlmap data synth`, `app.data.synthetic`): the scans' format, each named by its type.
 
 Which objects a case may ask about: `is_grounding_target` (any object but the room's shell, the builder's
 default) or `is_target_candidate` (small or medium movable-looking objects: the simulator's searches and the
@@ -159,8 +161,9 @@ def _read_jsonl(path: Path) -> Iterator[tuple[int, dict[str, Any]]]:
                 yield number, json.loads(line)
 
 
-def read_scannet(path: str | Path) -> list[LayoutScene]:
-    """ScanNet scenes (`scannet_train_scenes.jsonl`): boxes only; on/in will come from the boxes."""
+def _read_boxes(path: str | Path, source: str) -> list[LayoutScene]:
+    """Scenes of boxes and labels only (the scans' format); on/in will come from the boxes. A line's `room`,
+    where given, names its region and type."""
     scenes = []
     for number, raw in _read_jsonl(Path(path)):
         objects = []
@@ -173,18 +176,31 @@ def read_scannet(path: str | Path) -> list[LayoutScene]:
         portable = frozenset(
             o.id for o in objects if max(o.size) <= PORTABLE_MAX_SIDE and not is_structure(o.label)
         )
+        room = str(raw.get("room", ""))
         scenes.append(
             LayoutScene(
-                source="scannet",
+                source=source,
                 scene_id=str(raw["scene_id"]),
-                region=_extent_region("room", objects),
+                region=_extent_region(room or "room", objects),
                 objects=objects,
                 placements=None,
                 portable=portable,
                 targets=[o.id for o in objects if is_target_candidate(o.label, o.size)],
+                room_type=room,
             )
         )
     return scenes
+
+
+def read_scannet(path: str | Path) -> list[LayoutScene]:
+    """ScanNet scenes (`scannet_train_scenes.jsonl`): boxes only; on/in will come from the boxes."""
+    return _read_boxes(path, "scannet")
+
+
+def read_synthetic(path: str | Path) -> list[LayoutScene]:
+    """Synthetic rooms (`vlmap data synth`, `app.data.synthetic`): boxes only, each region named by its room
+    type; on/in will come from the boxes."""
+    return _read_boxes(path, "synthetic")
 
 
 def _thor_placements(
