@@ -410,10 +410,12 @@ class _Room:
         return None
 
     def _free(self, kind: Kind, size: np.ndarray) -> _Box | None:
+        if np.any(size[:2] > [self.sx, self.sy]):
+            return None
         for _ in range(PLACEMENT_TRIES):
             xy = self.rng.uniform(0.5 * size[:2], np.array([self.sx, self.sy]) - 0.5 * size[:2])
             center = np.array([xy[0], xy[1], 0.5 * size[2]])
-            if np.all(size[:2] <= [self.sx, self.sy]) and self._fits(center, size):
+            if self._fits(center, size):
                 return _Box(kind.label, center, size, kind)
         return None
 
