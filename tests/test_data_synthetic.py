@@ -85,6 +85,8 @@ def test_every_small_object_rests_on_a_top_inside_open_furniture_or_on_the_floor
 
 def test_every_room_type_is_drawn_and_labels_come_from_the_tables(rooms):
     assert {r["room"] for r in list(synthetic_rooms(200, seed=0))} == {t.name for t in ROOM_TYPES}
+    for room_type in ROOM_TYPES:
+        assert set(room_type.small) <= set(SMALL_OBJECTS) and set(room_type.furniture) <= set(FURNITURE)
     known = {"floor", "wall", *FURNITURE, *SMALL_OBJECTS}
     assert {o["label"] for r in rooms for o in r["objects"]} <= known
 

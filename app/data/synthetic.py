@@ -154,32 +154,70 @@ class RoomType:
     clutter: tuple[int, int]
 
 
-_KITCHEN_SMALL = "cup mug bottle bowl plate kettle toaster microwave paper towel roll pot tray vase box"
-_OFFICE_SMALL = "cup mug bottle book laptop keyboard monitor phone printer folder headphones box backpack bag"
-_LIVING_SMALL = (
-    "cup mug book remote control vase pillow table lamp potted plant speaker game controller candle box "
-    "basket bag tray"
+_KITCHEN_SMALL = (
+    "cup",
+    "mug",
+    "bottle",
+    "bowl",
+    "plate",
+    "kettle",
+    "toaster",
+    "microwave",
+    "paper towel roll",
+    "pot",
+    "tray",
+    "vase",
+    "box",
 )
-_BEDROOM_SMALL = "book pillow shoes table lamp alarm clock phone laptop bag backpack basket box towel cup"
-_BATH_SMALL = "towel soap dispenser toilet paper bottle basket tissue box candle cup"
-
-
-def _labels(text: str) -> tuple[str, ...]:
-    """Space-separated labels, with the multi-word labels of SMALL_OBJECTS kept whole."""
-    out: list[str] = []
-    words = text.split()
-    k = 0
-    while k < len(words):
-        for n in (3, 2, 1):
-            label = " ".join(words[k : k + n])
-            if label in SMALL_OBJECTS:
-                out.append(label)
-                k += n
-                break
-        else:
-            msg = f"unknown small object in {text!r} at {words[k]!r}"
-            raise ValueError(msg)
-    return tuple(out)
+_OFFICE_SMALL = (
+    "cup",
+    "mug",
+    "bottle",
+    "book",
+    "laptop",
+    "keyboard",
+    "monitor",
+    "phone",
+    "printer",
+    "folder",
+    "headphones",
+    "box",
+    "backpack",
+    "bag",
+)
+_LIVING_SMALL = (
+    "cup",
+    "mug",
+    "book",
+    "remote control",
+    "vase",
+    "pillow",
+    "table lamp",
+    "potted plant",
+    "speaker",
+    "game controller",
+    "candle",
+    "box",
+    "basket",
+    "bag",
+    "tray",
+)
+_BEDROOM_SMALL = (
+    "book",
+    "pillow",
+    "shoes",
+    "table lamp",
+    "alarm clock",
+    "phone",
+    "laptop",
+    "bag",
+    "backpack",
+    "basket",
+    "box",
+    "towel",
+    "cup",
+)
+_BATH_SMALL = ("towel", "soap dispenser", "toilet paper", "bottle", "basket", "tissue box", "candle", "cup")
 
 
 ROOM_TYPES = (
@@ -202,7 +240,7 @@ ROOM_TYPES = (
             "shelf": (0, 2),
             "radiator": (0, 1),
         },
-        _labels(_BEDROOM_SMALL),
+        _BEDROOM_SMALL,
         (2, 18),
     ),
     RoomType(
@@ -228,7 +266,7 @@ ROOM_TYPES = (
             "shelf": (0, 3),
             "clock": (0, 1),
         },
-        _labels(_LIVING_SMALL),
+        _LIVING_SMALL,
         (4, 30),
     ),
     RoomType(
@@ -249,7 +287,7 @@ ROOM_TYPES = (
             "clock": (0, 1),
             "washing machine": (0, 1),
         },
-        _labels(_KITCHEN_SMALL),
+        _KITCHEN_SMALL,
         (4, 28),
     ),
     RoomType(
@@ -273,7 +311,7 @@ ROOM_TYPES = (
             "shelf": (0, 3),
             "radiator": (0, 2),
         },
-        _labels(_OFFICE_SMALL),
+        _OFFICE_SMALL,
         (3, 30),
     ),
     RoomType(
@@ -291,7 +329,7 @@ ROOM_TYPES = (
             "door": (1, 2),
             "picture": (0, 2),
         },
-        _labels(_OFFICE_SMALL),
+        _OFFICE_SMALL,
         (0, 20),
     ),
     RoomType(
@@ -310,7 +348,7 @@ ROOM_TYPES = (
             "washing machine": (0, 1),
             "radiator": (0, 1),
         },
-        _labels(_BATH_SMALL),
+        _BATH_SMALL,
         (2, 14),
     ),
     RoomType(
@@ -328,7 +366,7 @@ ROOM_TYPES = (
             "lamp": (0, 2),
             "shelf": (0, 2),
         },
-        _labels(_KITCHEN_SMALL + " " + _LIVING_SMALL),
+        _KITCHEN_SMALL + _LIVING_SMALL,
         (3, 26),
     ),
 )
