@@ -10,6 +10,7 @@ import pytest
 
 from app.belief.grid import VoxelGrid
 from app.data.cases import read_cases
+from app.data.synthetic import synthetic_rooms, write_synthetic_rooms
 from app.errors import InvalidInput, NotFound
 from app.scene_graph.model import SceneGraph, SceneObject
 from app.sim.scenes import (
@@ -228,6 +229,15 @@ def test_scannet_layout_episode_keeps_the_target_in_the_world_only() -> None:
     assert len(world.object_voxels("18")) > 0
     with pytest.raises(NotFound):
         scene.episode("nope")
+
+
+def test_synthetic_rooms_load_as_their_own_source(tmp_path: Path) -> None:
+    path = tmp_path / "rooms.jsonl"
+    write_synthetic_rooms(path, 2, seed=0)
+    scenes = load_layout_scenes(path)
+    assert [s.source for s in scenes] == ["synthetic", "synthetic"]
+    assert [s.graph.regions[0].name for s in scenes] == [r["room"] for r in synthetic_rooms(2, seed=0)]
+    assert all(s.candidate_target_ids for s in scenes)
 
 
 def test_ai2thor_layout_labels_are_words() -> None:

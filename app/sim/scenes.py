@@ -106,8 +106,9 @@ class SimScene:
 
 
 def load_layout_scenes(path: str | Path, scene_ids: Iterable[str] | None = None) -> list[SimScene]:
-    """Scenes of a raw layout file (ScanNet or AI2-THOR JSONL, told apart by AI2-THOR's "room_type" field),
-    in file order; only those named in `scene_ids` when given (NotFound if one is missing)."""
+    """Scenes of a raw layout file (ScanNet, AI2-THOR or synthetic JSONL, told apart by AI2-THOR's
+    "room_type" and the synthetic rooms' "room" field), in file order; only those named in `scene_ids` when
+    given (NotFound if one is missing)."""
     from app.data import build
 
     path = Path(path)
@@ -116,8 +117,13 @@ def load_layout_scenes(path: str | Path, scene_ids: Iterable[str] | None = None)
     if first is None:
         msg = f"{path} holds no scene"
         raise InvalidInput(msg, "path")
-    source = "ai2thor" if "room_type" in json.loads(first) else "scannet"
-    layouts = build.read_ai2thor(path) if source == "ai2thor" else build.read_scannet(path)
+    fields = json.loads(first)
+    if "room_type" in fields:
+        layouts = build.read_ai2thor(path)
+    elif "room" in fields:
+        layouts = build.read_synthetic(path)
+    else:
+        layouts = build.read_scannet(path)
     if scene_ids is not None:
         wanted = list(dict.fromkeys(scene_ids))
         by_id = {layout.scene_id: layout for layout in layouts}
