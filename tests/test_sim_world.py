@@ -123,10 +123,12 @@ def test_tunnels_never_cut_smaller_objects() -> None:
     assert set(opened[:, 1].round(2)) == {0.05, 0.15, 0.25}
 
 
-def test_floor_objects_fill_one_layer_below_the_floor() -> None:
-    # A 0.5 m thick floor box (as in ScanNet) must not bury what stands on it.
+@pytest.mark.parametrize("label", ["Floor", "shower floor"])
+def test_floor_objects_fill_one_layer_below_the_floor(label: str) -> None:
+    # A 0.5 m thick floor box (as in ScanNet) must not bury what stands on it; every label of the floor's
+    # class is a floor (the vocabulary's `is_floor`), ScanNet's "shower floor" as well.
     objects = [
-        box("f", "Floor", [0.0, 0.0, -0.2], [2.0, 2.0, 0.3]),
+        box("f", label, [0.0, 0.0, -0.2], [2.0, 2.0, 0.3]),
         box("s", "shoe", [0.5, 0.5, 0.0], [0.8, 0.7, 0.1]),
         box("c", "chair", [1.0, 1.0, 0.0], [1.5, 1.5, 0.9]),
     ]

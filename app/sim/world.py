@@ -48,15 +48,13 @@ import numpy as np
 
 from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_MAX_VOXELS, DEFAULT_VOXEL_SIZE_M, VoxelGrid
 from app.errors import InvalidInput, NotFound
+from app.grounding.box_relations import is_ceiling, is_floor
 from app.scene_graph.model import SceneGraph, SceneObject
 
 #: Owner code of a voxel no object occupies.
 FREE = -1
 #: The label observations give free voxels (the belief's vision update reads it as "not the target").
 FREE_LABEL = "free"
-#: Labels of the objects that form the floor (compared lower-case).
-FLOOR_LABELS = frozenset({"floor", "floors"})
-CEILING_LABELS = frozenset({"ceiling", "ceilings"})
 #: Id of the floor the world lays under every scene (see the module docstring).
 SYNTHETIC_FLOOR_ID = "__floor__"
 #: Quantile of the objects' bottoms taken as the walking surface (see the module docstring).
@@ -87,14 +85,6 @@ class RobotBody:
         if not (math.isfinite(self.camera_height) and 0 < self.camera_height <= self.height):
             msg = f"camera_height must lie in (0, height={self.height}], got {self.camera_height}"
             raise InvalidInput(msg, "robot.camera_height")
-
-
-def is_floor(label: str) -> bool:
-    return label.strip().lower() in FLOOR_LABELS
-
-
-def is_ceiling(label: str) -> bool:
-    return label.strip().lower() in CEILING_LABELS
 
 
 def estimate_floor_z(objects: Sequence[SceneObject]) -> float:
