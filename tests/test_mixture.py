@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, project_to_pd
+from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, map_box, project_to_pd
+from app.scene_graph.model import SceneGraph
 
 
 def test_mixture_logpdf_matches_scipy_sum_of_weighted_densities() -> None:
@@ -79,3 +80,12 @@ def test_a_background_keeps_the_density_above_its_share_of_the_uniform_everywher
     np.testing.assert_allclose(served.weights.sum() + served.box_weights.sum(), 1.0)
     with pytest.raises(ValueError, match="background"):
         sharp.with_background(1.0, box)
+
+
+def test_the_map_box_of_a_map_without_objects_is_its_regions() -> None:
+    """Where a session's grid lies (`SceneGraph.bounds`), not the unit box at the origin."""
+    kitchen = {"id": "k", "name": "kitchen", "center": [10.0, 10.0, 1.25], "size": [4.0, 4.0, 2.5]}
+    box = map_box(SceneGraph.model_validate({"regions": [kitchen], "objects": []}))
+    assert np.allclose(box.low, [8.0, 8.0, 0.0]) and np.allclose(box.high, [12.0, 12.0, 2.5])
+    empty = map_box(SceneGraph.model_validate({"regions": [], "objects": []}))
+    assert np.allclose(empty.low, -0.5) and np.allclose(empty.high, 0.5)

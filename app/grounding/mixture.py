@@ -119,11 +119,11 @@ def map_box(scene_graph: SceneGraph) -> UniformBox:
 
     low = min_o min_corner(o), high = max_o max_corner(o) over the objects (the axis-aligned boxes that bound
     their yawed boxes; regions do not count), grown by `UniformBox.around`: the evaluation's no-language
-    baseline, and the box meant for the sensor's broad term. A map without objects gets the unit box at the
-    origin, as `SceneGraph.bounds` does.
+    baseline, and the box meant for the sensor's broad term. A map without objects gets `SceneGraph.bounds`:
+    its regions' box (where a session's grid lies), or the unit box at the origin if it has none either.
     """
     if not scene_graph.objects:
-        return UniformBox(np.full(3, -0.5), np.full(3, 0.5))
+        return UniformBox.around(*scene_graph.bounds())
     lows, highs = object_corners(scene_graph.objects)
     return UniformBox.around(lows.min(axis=0), highs.max(axis=0))
 
