@@ -155,6 +155,37 @@ def test_a_region_without_the_anchor_is_ignored_and_said(proposer: BuiltinPropos
     assert proposal.extra["region_ignored"] == 1.0
 
 
+def test_every_region_mentioned_keeps_its_share(sensor: LanguageSensor) -> None:
+    graph = two_rooms()
+    kitchen, bedroom = (
+        UniformBox(
+            np.asarray(r.center) - 0.5 * np.asarray(r.size), np.asarray(r.center) + 0.5 * np.asarray(r.size)
+        )
+        for r in graph.regions
+    )
+    for utterance in (
+        "the keys are in the kitchen or in the bedroom",
+        "the keys are in the bedroom or in the kitchen",
+    ):
+        mixture = sensor.ground(graph, utterance).mixture
+        assert box_mass(mixture, kitchen) == pytest.approx(box_mass(mixture, bedroom), abs=0.1)
+        assert box_mass(mixture, kitchen) > 0.3
+
+
+def test_a_region_ruled_out_loses_its_mass(sensor: LanguageSensor, proposer: BuiltinProposer) -> None:
+    graph = two_rooms()
+    kitchen = next(r for r in graph.regions if r.id == "k")
+    box = UniformBox(
+        np.asarray(kitchen.center) - 0.5 * np.asarray(kitchen.size),
+        np.asarray(kitchen.center) + 0.5 * np.asarray(kitchen.size),
+    )
+    said = box_mass(sensor.ground(graph, "the mug is in the kitchen").mixture, box)
+    ruled_out = box_mass(sensor.ground(graph, "the mug is not in the kitchen").mixture, box)
+    assert said > 0.8 and ruled_out < 0.05
+    weights = object_weights(proposer.propose(graph, "the mug is on the table, not in the kitchen"))
+    assert ("b-table",) in weights and ("k-table",) not in weights
+
+
 def test_storey_words_pick_regions_by_height() -> None:
     graph = scene(
         [], [room("up", "bedroom", 0.0, z=4.0), room("down", "bedroom", 0.0), room("k", "kitchen", 8.0)]

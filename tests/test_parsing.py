@@ -223,6 +223,42 @@ def test_negation_marks_the_anchor(utterance: str) -> None:
     assert table.noun == "table" and table.negated
 
 
+@pytest.mark.parametrize(
+    "utterance",
+    [
+        "the mug that isn't mine is on the table",
+        "the phone that doesn't work is on the table",
+        "the remote i couldn't find is under the table",
+    ],
+)
+def test_a_negation_in_another_clause_does_not_negate_the_relation(utterance: str) -> None:
+    (table,) = parse_utterance(utterance).anchors
+    assert table.noun == "table" and not table.negated
+
+
+def test_a_negated_region_is_ruled_out_not_named() -> None:
+    parse = parse_utterance("the mug is on the table, not in the kitchen")
+    assert parse.region_phrase is None and parse.region_phrases == ()
+    assert parse.excluded_region_phrases == ("kitchen",)
+    assert parse_utterance("my mug isn't in the kitchen").excluded_region_phrases == ("kitchen",)
+    kept = parse_utterance("the mug that isn't mine is in the kitchen")
+    assert kept.region_phrases == ("kitchen",) and kept.excluded_region_phrases == ()
+
+
+def test_a_storey_after_the_room_qualifies_it() -> None:
+    parse = parse_utterance("the mug is on the table in the bedroom upstairs")
+    assert parse.region_phrases == ("upstairs bedroom",)
+    assert parse.anchor_phrases == ("table",)
+
+
+def test_accents_and_full_width_letters_read_as_plain_ones() -> None:
+    composed = parse_utterance("the remote is on the canap\u00e9")
+    decomposed = parse_utterance("the remote is on the canape\u0301")
+    assert composed.anchor_phrases == decomposed.anchor_phrases == ("canape",)
+    wide = parse_utterance("\uff34\uff28\uff25 \uff2d\uff35\uff27 is on the table")
+    assert wide.target == "mug" and wide.anchor_phrases == ("table",)
+
+
 def test_a_qualifier_can_be_negated() -> None:
     parse = parse_utterance("the books on the highest shelf but not on top of the cabinet")
     shelf = next(m for m in parse.mentions if m.noun == "shelf")

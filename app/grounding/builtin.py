@@ -71,7 +71,7 @@ from app.grounding.referent_features import (
 )
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, SceneObject
-from app.vocabulary import class_key, lemmas, lexical_match, normalise, other_names, regions_named
+from app.vocabulary import class_key, lemmas, lexical_match, normalise, other_names
 
 DEFAULT_PARAMS_PATH = Path(__file__).resolve().parents[2] / "models" / "proposer" / "params.json"
 LABEL_CACHE_SIZE = 50_000  # object names whose embeddings the proposer keeps
@@ -308,10 +308,15 @@ class Candidates:
     features: np.ndarray  # (H, F)
     attribute: np.ndarray  # (H,) attribute agreement in [-1, 1]
     utterance_features: np.ndarray  # (G,)
-    region_id: str | None  # the region hypothesis's region (None: the whole map)
+    regions: tuple[str, ...]  # the region hypothesis's regions, sorted (none: the whole map)
     avoid: tuple[UniformBox, ...] = ()  # what negated anchors rule out
     reason: str | None = None  # why nothing anchors the target, when nothing does
     region_ignored: bool = False
+
+    @property
+    def region_id(self) -> str | None:
+        """The region hypothesis's one region (None: the whole map, or several regions)."""
+        return self.regions[0] if len(self.regions) == 1 else None
 
     def anchor_ids(self, row: int) -> tuple[str, ...]:
         return tuple(self.objects[i].id for i in self.anchors[row])
@@ -404,24 +409,35 @@ class BuiltinProposer:
         params = self.params
         weights = softmax(params.scores(found.keys, found.features, found.attribute))  # (H,)
         objects = found.objects
-        region_name = next((r.name for r in scene_graph.regions if r.id == found.region_id), "")
-        hypotheses = tuple(
-            Hypothesis(
-                anchor_ids=found.anchor_ids(row),
-                relation=found.relations[row],
-                weight=float(w),
-                region_id=objects[found.anchors[row][0]].region_id if found.anchors[row] else found.region_id,
-                text=describe(parse.target, found.relations[row], found.anchor_objects(row), region_name),
-                spread=_spread(params, found.spreads[row]),
-            )
-            for row, w in enumerate(weights)
-        )
-        order = np.argsort(-weights, kind="stable")
+        region_names = {r.id: r.name for r in scene_graph.regions}
+        hypotheses: list[Hypothesis] = []
+        for row, w in enumerate(weights):
+            relation, spread = found.relations[row], _spread(params, found.spreads[row])
+            if found.anchors[row]:
+                region_ids: tuple[str | None, ...] = (objects[found.anchors[row][0]].region_id,)
+            else:  # "in the kitchen or in the bedroom": the region reading's weight shared by the regions
+                region_ids = found.regions or (None,)
+            hypotheses += [
+                Hypothesis(
+                    anchor_ids=found.anchor_ids(row),
+                    relation=relation,
+                    weight=float(w) / len(region_ids),
+                    region_id=region_id,
+                    text=describe(
+                        parse.target,
+                        relation,
+                        found.anchor_objects(row),
+                        region_names.get(region_id or "", ""),
+                    ),
+                    spread=spread,
+                )
+                for region_id in region_ids
+            ]
         extra = {"candidates": float(len(weights))}
         if found.region_ignored:
             extra["region_ignored"] = 1.0
         background = params.background_weight(found.utterance_features)
-        ranked = [hypotheses[i] for i in order]
+        ranked = sorted(hypotheses, key=lambda h: -h.weight)  # stable: ties keep the rows' order
         if found.avoid:
             # Under a negation "somewhere in the room" is the broad term with the negated areas carved out;
             # the grounder's region density would put its usual mass back on them ("not on the table").
@@ -471,7 +487,7 @@ class BuiltinProposer:
         cosine = np.maximum(phrase_cosine[:, first], phrase_cosine[:, last])  # (T, N)
         levels = np.maximum(name_level[:, first], name_level[:, last])  # (T, N)
 
-        region_ids = regions_named(scene_graph.regions, parse.region_phrase)
+        region_ids, _ = parse.region_ids(scene_graph.regions)
         in_region = None if region_ids is None else np.array([o.region_id in region_ids for o in objects])
         vocabulary = frozenset().union(*(object_attribute_words(o) for o in objects))
         region_ignored = False
@@ -515,7 +531,6 @@ class BuiltinProposer:
         keys = [class_key(o.label) for o in objects]
         features = self._geometry(rows, keys, boxes, siblings, target_box, target_cosine)  # (H, F)
         region_features = np.concatenate([np.zeros(N_GEOMETRY), region_row])[None]
-        region_id = sorted(region_ids)[0] if region_ids and len(region_ids) == 1 else None
 
         unknown = [
             m.phrase
@@ -561,7 +576,7 @@ class BuiltinProposer:
             features=np.concatenate([features, region_features]),
             attribute=np.append(np.asarray(rows.attribute, dtype=np.float64), 0.0),
             utterance_features=utterance_features,
-            region_id=region_id,
+            regions=tuple(sorted(region_ids or ())),
             avoid=self._avoided(negated, mentions, matches, objects),
             reason=reason,
             region_ignored=region_ignored,

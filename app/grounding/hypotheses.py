@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from app.grounding.mixture import UniformBox
 from app.grounding.relations import Relation
+from app.vocabulary import NamedRegion, regions_said
 
 #: The smallest weight of the broad "I may have misunderstood" term in every served mixture: the density is
 #: never below MIN_BACKGROUND_WEIGHT / vol(map box) inside the map's box, so never more than
@@ -75,6 +77,7 @@ class UtteranceParse:
     relation_known: bool = True
     mentions: tuple[Mention, ...] = ()
     region_phrases: tuple[str, ...] = ()  # every region mention, the first being `region_phrase`
+    excluded_region_phrases: tuple[str, ...] = ()  # regions ruled out ("not in the kitchen"), not above
     target_attributes: tuple[str, ...] = ()
     sentences: int = 1
     view_dependent: bool = False  # some relation needs a viewpoint
@@ -84,6 +87,16 @@ class UtteranceParse:
     def anchors(self) -> tuple[Mention, ...]:
         """The mentions that anchor the target (negated ones included)."""
         return tuple(m for m in self.mentions if m.role == "anchor")
+
+    def region_ids(self, regions: Sequence[NamedRegion]) -> tuple[set[str] | None, set[str] | None]:
+        """(ids of the map's regions the utterance puts the target in; ids of those it rules out), each None
+        where there are none (`regions_said`). The first are the regions named less those ruled out, or,
+        where it names none, every region it does not rule out ("not in the kitchen": one of the others)."""
+        excluded = regions_said(regions, self.excluded_region_phrases)
+        named = regions_said(regions, self.region_phrases)
+        if excluded is not None:
+            named = (named if named is not None else {r.id for r in regions}) - excluded or None
+        return named, excluded
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from app.grounding.hypotheses import Hypothesis, Proposal, UtteranceParse
 from app.grounding.parsing import parse_utterance
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, SceneObject
-from app.vocabulary import lemmas, lexical_match, regions_named
+from app.vocabulary import lemmas, lexical_match
 
 
 def match_score(noun: str, phrase: str, label: str) -> int:
@@ -57,7 +57,7 @@ class LexicalProposer:
         parse = parse_utterance(utterance, tuple(r.name for r in scene_graph.regions))
         if not parse.anchor_phrases:
             return Proposal(parse, (), grounded=False, reason="the utterance names no anchor object")
-        region_ids = regions_named(scene_graph.regions, parse.region_phrase)
+        region_ids, _ = parse.region_ids(scene_graph.regions)
         nouns = {m.phrase: m.noun for m in parse.mentions}
         candidates = [
             matching_objects(scene_graph, nouns.get(p, p), p, region_ids) for p in parse.anchor_phrases

@@ -45,7 +45,7 @@ from functools import lru_cache
 
 from app.grounding.hypotheses import Mention, UtteranceParse
 from app.grounding.relations import RELATION_PHRASES, Relation
-from app.vocabulary import ROOM_WORDS, lemmas, normalise, object_nouns, same_class
+from app.vocabulary import ROOM_WORDS, fold, lemmas, normalise, object_nouns, same_class
 
 __all__ = [
     "ATTRIBUTE_WORDS",
@@ -222,6 +222,7 @@ _TARGET_TAIL = _words(
     "standing hanging usually probably still now always just right up directly slightly also there"
 )
 _COPULAS = _words("is are was were it's they're")
+_RELATIVE_PRONOUNS = _words("that which who")
 _PRONOUNS = _words("it this that they them one ones itself")
 _NEGATORS = _words("not n't never no nowhere nothing without neither nor isn't aren't wasn't weren't don't")
 _VIEW_WORDS = _words("left right front behind facing leftmost rightmost")
@@ -369,19 +370,24 @@ def _region_regex(region_names: tuple[str, ...]) -> re.Pattern[str]:
     boundary = rf"(?=$|\s+(?:{'|'.join(re.escape(w) for w in _BOUNDARY_WORDS)})\b)"
     return re.compile(
         rf"(?:^|\s)(?:(?:in|inside|at|from|of|on)\s+(?:the\s+|my\s+|our\s+|this\s+|that\s+)?"
-        rf"(?P<region>(?:(?:{_REGION_QUALIFIERS})\s+)*(?:{alternation}))"
+        rf"(?P<region>(?:(?:{_REGION_QUALIFIERS})\s+)*(?:{alternation}))(?:\s+(?P<after>upstairs|downstairs))?"
         rf"|(?P<storey>upstairs|downstairs)){boundary}"
     )
 
 
-def _take_regions(text: str, region_names: tuple[str, ...]) -> tuple[str, list[str]]:
-    """The text without its region mentions, and the mentions ("upstairs bedroom"), in order."""
+def _take_regions(text: str, region_names: tuple[str, ...]) -> tuple[str, list[str], list[str]]:
+    """The text without its region mentions, the mentions ("upstairs bedroom", also for "the bedroom
+    upstairs") in order, and the negated ones ("not in the kitchen") apart."""
     found: list[str] = []
+    negated: list[str] = []
     pattern = _region_pattern(region_names)
     while (match := pattern.search(text)) is not None:
-        found.append(match.group("region") or match.group("storey"))
+        region, after = match.group("region"), match.group("after")
+        phrase = f"{after} {region}" if region and after else region or match.group("storey")
+        before = text[: match.start()].split()
+        (negated if _negated(before, len(before)) else found).append(phrase)
         text = " ".join((text[: match.start()] + " " + text[match.end() :]).split())
-    return text, found
+    return text, found, negated
 
 
 def _strip_lead_ins(text: str) -> str:
@@ -468,6 +474,18 @@ def _modifiers_before(tokens: list[str], start: int, blocked: set[int], floor: i
     return k
 
 
+def _negated(tokens: list[str], start: int) -> bool:
+    """Whether a negator governs the relation phrase at `start`: one of the three words before it, with no
+    verb "to be" or relative pronoun between them ("is not on", "not the one on"; not "the mug that isn't
+    mine is on", whose "isn't" belongs to another clause)."""
+    for token in reversed(tokens[max(0, start - 3) : start]):
+        if token in _NEGATORS or token.endswith("n't"):
+            return True
+        if token in _COPULAS or token in _RELATIVE_PRONOUNS:
+            return False
+    return False
+
+
 def _clause_items(tokens: list[str], lexicon: frozenset[str]) -> list[_Item]:
     """Relation phrases (longest first, left to right) and the mentions between them, in order."""
     table, longest = _phrase_table(), _longest_phrase()
@@ -477,7 +495,7 @@ def _clause_items(tokens: list[str], lexicon: frozenset[str]) -> list[_Item]:
         for width in range(min(longest, len(tokens) - i), 0, -1):
             phrase = table.get(tuple(tokens[i : i + width]))
             if phrase is not None:
-                negated = any(t in _NEGATORS or t.endswith("n't") for t in tokens[max(0, i - 3) : i])
+                negated = _negated(tokens, i)
                 relations.append(_Item("relation", i, i + width, relation=phrase, negated=negated))
                 i += width
                 break
@@ -569,9 +587,11 @@ def parse_utterance(
     `object_names` (lemmatised labels of the map) join the vocabulary of object names. With no relation word
     at all, the whole utterance names the target and the relation is "near" with no anchor.
     """
+    utterance = fold(utterance)  # full-width forms and accents as plain letters, punctuation included
     lexicon = object_nouns() | frozenset(object_names)
     region_names = tuple(normalise(n) for n in region_names)
     regions: list[str] = []
+    excluded: list[str] = []  # regions the utterance rules out ("not in the kitchen")
     mentions: list[Mention] = []
     target_index: int | None = None
     view_any = False
@@ -582,8 +602,9 @@ def parse_utterance(
         sentence_view = any(w in _VIEW_WORDS for c in clauses for w in c)
         more = len(clauses) > 1 or number < len(sentences) - 1  # a viewpoint needs something after it
         for clause_number, words in enumerate(clauses):
-            text, found = _take_regions(" ".join(words), region_names)
+            text, found, negated = _take_regions(" ".join(words), region_names)
             regions += found
+            excluded += negated
             body = _superlative_after_name(_strip_lead_ins(text) if clause_number == 0 else text)
             from_viewpoint = clause_number == 0 and more and bool(_VIEWPOINT_CLAUSE.match(body))
             if from_viewpoint:
@@ -615,7 +636,7 @@ def parse_utterance(
         )
         target_index = viewpoint
     english = total_words == 0 or english_words / total_words >= MIN_ENGLISH_SHARE
-    return _primary(utterance, region_names, mentions, target_index, regions, view_any, english)
+    return _primary(utterance, region_names, mentions, target_index, regions, excluded, view_any, english)
 
 
 def _relata(tokens: list[str], items: list[_Item], position: int) -> tuple[list[tuple[int, bool]], int]:
@@ -756,6 +777,7 @@ def _primary(
     mentions: list[Mention],
     target_index: int | None,
     regions: list[str],
+    excluded: list[str],
     view: bool,
     english: bool,
 ) -> UtteranceParse:
@@ -791,6 +813,7 @@ def _primary(
         relation_known=first.relation_known if first is not None else True,
         mentions=tuple(mentions),
         region_phrases=tuple(regions),
+        excluded_region_phrases=tuple(excluded),
         target_attributes=target.attributes if target is not None else split_attributes(target_text)[0],
         sentences=max(1, len(_SENTENCE.split(utterance.strip(" .!?;\n")))),
         view_dependent=view,
@@ -809,7 +832,7 @@ def _shift(mention: Mention, by: int) -> Mention:
 def _fallback_target(utterance: str, region_names: tuple[str, ...]) -> str:
     """The first parser's target: the words before the first relation phrase, cleaned."""
     text = normalise(utterance)
-    text, _ = _take_regions(text, region_names)
+    text, _, _ = _take_regions(text, region_names)
     body = _superlative_after_name(_strip_lead_ins(text))
     tokens = body.split()
     table, longest = _phrase_table(), _longest_phrase()

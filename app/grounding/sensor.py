@@ -37,7 +37,6 @@ from app.grounding.interfaces import Grounder, HypothesisProposer
 from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, map_box
 from app.grounding.parsing import parse_utterance
 from app.scene_graph.model import SceneGraph
-from app.vocabulary import regions_named
 
 StageObserver = Callable[[str, float], None]
 #: Hypotheses grounded one by one (the rest are merged per region).
@@ -249,10 +248,11 @@ def broad_density(
 def broad_boxes(
     scene_graph: SceneGraph, parse: UtteranceParse, box: UniformBox, avoid: Sequence[UniformBox] = ()
 ) -> tuple[list[UniformBox], np.ndarray]:
-    """The uniform part of B as boxes with weights summing to one: the mentioned regions (equal shares),
-    else the map's box minus the `avoid` boxes (shares by volume, so it is uniform on what is left), else
-    the map's box `box` (`map_box`)."""
-    region_ids = regions_named(scene_graph.regions, parse.region_phrase)
+    """The uniform part of B as boxes with weights summing to one: the regions the utterance puts the target
+    in (equal shares; `UtteranceParse.region_ids`: "not in the kitchen" is every other region), else the
+    map's box minus the `avoid` boxes (shares by volume, so it is uniform on what is left), else the map's
+    box `box` (`map_box`)."""
+    region_ids, _ = parse.region_ids(scene_graph.regions)
     if region_ids:
         boxes = [
             UniformBox.around(

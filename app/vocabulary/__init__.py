@@ -24,7 +24,8 @@ window" are objects?), the case builder (how may a speaker call a labelled objec
   conventions read a map's labels.
 - Regions: `ROOM_WORDS` (read as a region even when the map names none), `STOREY_WORDS`, and
   `regions_named(regions, phrase)`, the one rule for which of a map's regions a region phrase names (the
-  proposers, the broad term); the parser reads region names through `normalise`, as it reads utterances.
+  proposers, the broad term), and `regions_said(regions, phrases)` for all of an utterance's phrases; the
+  parser reads region names through `normalise`, as it reads utterances.
 
 Same class, or a looser naming: the one rule for look-alikes. "Same class" (`class_key`) is an equivalence
 over synonyms only; a generic word never makes two names the same class. The belief compares classes and
@@ -41,6 +42,7 @@ backpack fuses an utterance about "the bag".
 from __future__ import annotations
 
 import re
+import unicodedata
 from collections.abc import Sequence
 from functools import cache, lru_cache
 from pathlib import Path
@@ -62,6 +64,7 @@ __all__ = [
     "object_nouns",
     "other_names",
     "regions_named",
+    "regions_said",
     "same_class",
     "singular",
 ]
@@ -94,9 +97,18 @@ _CAMEL = re.compile(r"(?<=[a-z0-9])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])")
 _SEPARATORS = re.compile(r"[_\-/.]+")
 
 
+def fold(text: str) -> str:
+    """The text with compatibility forms and accents folded to plain letters ("ＭＵＧ" -> "MUG", "canapé" ->
+    "canape", the same whether the accent is composed or not), so that a name matches however its
+    characters were encoded; ASCII text is returned as it is."""
+    if text.isascii():
+        return text
+    return "".join(c for c in unicodedata.normalize("NFKD", text) if not unicodedata.combining(c))
+
+
 def normalise(text: str) -> str:
-    """Lower case, plain spaces, no punctuation except apostrophes."""
-    return " ".join(_WORD.findall(text.lower().replace("’", "'")))
+    """Lower case, accents folded (`fold`), plain spaces, no punctuation except apostrophes."""
+    return " ".join(_WORD.findall(fold(text.replace("’", "'")).lower()))
 
 
 def singular(word: str) -> str:
@@ -403,3 +415,15 @@ def regions_named(regions: Sequence[NamedRegion], phrase: str | None) -> set[str
             middle = 0.5 * (min(heights) + max(heights))
             pool = [r for r, z in zip(pool, heights, strict=True) if (z - middle) * storey[0] > 0]
     return {r.id for r in pool} or None
+
+
+def regions_said(regions: Sequence[NamedRegion], phrases: Sequence[str]) -> set[str] | None:
+    """Ids of the regions an utterance's region phrases name together, None if none: each phrase's
+    (`regions_named`), united ("in the kitchen or in the bedroom"); a phrase that is only a storey word
+    qualifies the room phrases beside it ("in the bedroom, upstairs" is the upstairs bedroom)."""
+    storeys = [p for p in phrases if p and set(normalise(p).split()) <= STOREY_WORDS.keys()]
+    rooms = [p for p in phrases if p and p not in storeys]
+    if storeys and rooms:
+        phrases = [f"{storeys[0]} {p}" for p in rooms]
+    ids = set().union(*(regions_named(regions, p) or set() for p in phrases))
+    return ids or None
