@@ -19,6 +19,10 @@ from app.stores.redis_store import DEFAULT_MIRROR_BYTES
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
+#: The most `max_utterance_chars` may be: the request schemas refuse a longer utterance before reading it.
+MAX_UTTERANCE_CHARS_CEILING = 100_000
+
+
 class Settings(BaseSettings):
     """Embedded defaults run the whole service on one machine with no external server. Where a setting is
     a default of the code it configures, that default is named once, there, and used here."""
@@ -73,7 +77,12 @@ class Settings(BaseSettings):
         "merged per region into one broad Gaussian each.",
     )
     max_query_points: int = Field(default=10_000, ge=0, description="query_points allowed per /v1/ground.")
-    max_utterance_chars: int = Field(default=1000, ge=1)
+    max_utterance_chars: int = Field(
+        default=1000,
+        ge=1,
+        le=MAX_UTTERANCE_CHARS_CEILING,
+        description="Characters of an utterance (/v1/ground, a session's utterances; 422 above).",
+    )
 
     store: str = Field(
         default="memory", description='Session store: "memory" (durable in data_dir) or a redis:// URL.'

@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from app.api.app import create_app
 from app.sessions.batch import encode_msgpack_batch
-from app.stores.base import pack_array
-from tests.conftest import load_resource_json
+from app.stores import MemorySessionStore
+from app.stores.base import DEFAULT_IDEMPOTENCY_WINDOW_S, pack_array
+from tests.conftest import load_resource_json, model_free_settings
 
 
 @pytest.fixture
@@ -145,6 +147,19 @@ def test_etag_and_not_modified(client: TestClient, two_rooms: dict) -> None:
     assert changed.status_code == 200
     assert changed.headers["etag"] != etag
     assert changed.json()["version"] == 1
+
+
+def test_if_none_match_compares_weakly_and_star_matches_any_version(
+    client: TestClient, two_rooms: dict
+) -> None:
+    sid = _create(client, two_rooms, target_label="backpack")["id"]
+    etag = client.get(f"/v1/sessions/{sid}/belief").headers["etag"]
+    for path in ("belief", "belief/topdown"):
+        for given in (f"W/{etag}", "*", f'"other", W/{etag}'):
+            answer = client.get(f"/v1/sessions/{sid}/{path}", headers={"If-None-Match": given})
+            assert answer.status_code == 304, (path, given)
+        other = client.get(f"/v1/sessions/{sid}/{path}", headers={"If-None-Match": 'W/"v9"'})
+        assert other.status_code == 200
 
 
 def test_out_of_grid_voxels_are_counted_not_fatal(client: TestClient, two_rooms: dict) -> None:
@@ -340,12 +355,13 @@ def test_a_watched_session_is_summarised_in_the_background_before_the_next_poll(
     batch = {"voxels": [[1, 1, 1]], "labels": ["chair"]}
     client.post(f"/v1/sessions/{sid}/observations", params={"summary": "false"}, json=batch)
     time.sleep(0.2)  # a job, had one started, would have finished
-    assert summaries.get(sid, 1, 5) is None  # nobody reads this belief: nothing summarised
+    created_at = client.get(f"/v1/sessions/{sid}").json()["created_at"]
+    assert summaries.get(sid, created_at, 1, 5) is None  # nobody reads this belief: nothing summarised
     assert client.get(f"/v1/sessions/{sid}/belief").json()["version"] == 1  # a dashboard starts polling
     for version in (2, 3):
         client.post(f"/v1/sessions/{sid}/observations", params={"summary": "false"}, json=batch)
         deadline = time.monotonic() + 10.0
-        while (ready := summaries.get(sid, version, 5)) is None and time.monotonic() < deadline:
+        while (ready := summaries.get(sid, created_at, version, 5)) is None and time.monotonic() < deadline:
             time.sleep(0.01)  # the background job runs on the app's event loop
         assert ready is not None and ready.version == version
         polled = client.get(f"/v1/sessions/{sid}/belief").json()
@@ -471,3 +487,45 @@ def test_the_belief_fuses_exactly_the_served_density_boxes_included(two_rooms: d
     served = served_mixture(mixture)
     gaussians = GaussianMixture(served.weights, served.means, served.covariances).logpdf(centers)
     assert np.max(log_likelihood - gaussians) > 1.0
+
+
+def test_a_session_made_again_under_its_id_is_not_served_the_earlier_ones_summary(two_rooms: dict) -> None:
+    now = [1000.0]
+    store = MemorySessionStore(clock=lambda: now[0])
+    body = {"robot_id": "r7", "scene_graph": two_rooms, "target_label": "backpack"}
+    made = {"Idempotency-Key": "mission-1"}
+    with TestClient(create_app(model_free_settings(), store=store)) as client:
+        sid = client.post("/v1/sessions", json=body, headers=made).json()["id"]
+        client.post(f"/v1/sessions/{sid}/observations", json={"voxels": [[1, 1, 1]], "labels": ["backpack"]})
+        first = client.get(f"/v1/sessions/{sid}/belief")
+        assert client.delete(f"/v1/sessions/{sid}").status_code == 204
+        now[0] += 2 * DEFAULT_IDEMPOTENCY_WINDOW_S  # the creation's key is forgotten: the same id again
+        assert client.post("/v1/sessions", json=body, headers=made).json()["id"] == sid
+        client.post(f"/v1/sessions/{sid}/observations", json={"voxels": [[9, 9, 9]], "labels": ["backpack"]})
+        second = client.get(f"/v1/sessions/{sid}/belief")
+        assert second.json()["version"] == first.json()["version"] == 1
+        map_voxel = second.json()["summary"]["map_voxel"]
+        assert map_voxel != first.json()["summary"]["map_voxel"]
+        posterior = _grid(client, sid)["posterior"]
+        assert map_voxel["index"] == int(np.argmax(posterior))
+
+
+@pytest.mark.parametrize("limit", [20, 2000])
+def test_utterances_are_as_long_as_the_setting_allows(two_rooms: dict, limit: int) -> None:
+    with TestClient(create_app(model_free_settings(max_utterance_chars=limit))) as client:
+        sid = _create(client, two_rooms, target_label="backpack")["id"]
+        for length, allowed in ((limit, True), (limit + 1, False)):
+            text = ("the backpack is on the table " * 100)[:length]
+            said = client.post(f"/v1/sessions/{sid}/utterances", json={"utterance": text})
+            grounded = client.post("/v1/ground", json={"utterance": text, "scene_graph": two_rooms})
+            for answer in (said, grounded):
+                assert (answer.status_code == 200) is allowed, answer.text
+                if not allowed:
+                    assert answer.status_code == 422 and answer.json()["field"] == "utterance"
+
+
+def test_a_label_id_given_twice_in_two_spellings_is_a_422(client: TestClient, two_rooms: dict) -> None:
+    body = {"robot_id": "r7", "scene_graph": two_rooms, "target_label": "floor"}
+    answer = client.post("/v1/sessions", json={**body, "label_map": {"7": "backpack", "007": "floor"}})
+    assert answer.status_code == 422 and answer.json()["field"] == "label_map.007"
+    assert client.get("/v1/sessions").json()["sessions"] == []

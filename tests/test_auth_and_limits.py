@@ -228,3 +228,16 @@ def test_unauthenticated_writes_change_nothing(secured_sessions: tuple[TestClien
     for method, path, kwargs in _operations(r7_session).values():
         assert client.request(method, path, **kwargs).status_code == 401
     assert client.get(f"/v1/sessions/{r7_session}", headers=_bearer("admin")).json() == before
+
+
+def test_a_bad_utterance_body_is_read_only_after_the_key_and_its_rate() -> None:
+    path = "/v1/sessions/any/utterances"
+    bodies = [(b'{"utterance": 5}', "application/json"), (b'{"utterance": "hi"}', "text/plain")]
+    with TestClient(create_app(_settings(rate_limit_per_s=0.001, rate_limit_burst=1))) as client:
+        for content, kind in bodies:
+            for key in ({}, {"Authorization": "Bearer nope"}):
+                answer = client.post(path, content=content, headers={"content-type": kind, **key})
+                assert answer.status_code == 401, answer.text
+        robot = {"content-type": "application/json", **_bearer("robot")}
+        assert client.post(path, content=bodies[0][0], headers=robot).status_code == 422
+        assert client.post(path, content=bodies[0][0], headers=robot).status_code == 429  # over its rate

@@ -117,6 +117,33 @@ def test_creation_scene_graph_and_deletion_are_applied_once(client: TestClient) 
     )  # a new delete: nothing there
 
 
+def test_a_key_an_update_used_is_refused_for_an_utterance_that_is_not_fused(client: TestClient) -> None:
+    sid = create(client).json()["id"]
+    said = key()
+    first = {"utterance": "the backpack is on the table"}
+    assert client.post(f"/v1/sessions/{sid}/utterances", json=first, headers=said).json()["fused"]
+    other = {"utterance": "the mug is on the desk"}  # names another class than the target: not fused
+    reused = client.post(f"/v1/sessions/{sid}/utterances", json=other, headers=said)
+    assert reused.status_code == 422 and reused.json()["code"] == "idempotency_key_reused"
+    assert client.post(f"/v1/sessions/{sid}/utterances", json=other, headers=key()).json()["fused"] is False
+    said = [u["utterance"] for u in client.get(f"/v1/sessions/{sid}/utterances").json()["utterances"]]
+    assert said == ["the backpack is on the table", "the mug is on the desk"]  # the refused one not announced
+
+
+@pytest.mark.parametrize("keyed_delete", [False, True])
+def test_a_creation_retried_after_its_session_was_deleted_is_not_applied_again(
+    client: TestClient, keyed_delete: bool
+) -> None:
+    made = key()
+    sid = create(client, made).json()["id"]
+    batch = {"voxels": [[1, 2, 3]], "labels": ["backpack"]}
+    assert client.post(f"/v1/sessions/{sid}/observations", json=batch).json()["version"] == 1
+    assert client.delete(f"/v1/sessions/{sid}", headers=key() if keyed_delete else {}).status_code == 204
+    again = create(client, made)
+    assert again.status_code == 404 and again.json()["code"] == "not_found"
+    assert client.get(f"/v1/sessions/{sid}").status_code == 404  # not made again
+
+
 @pytest.mark.parametrize("bad", [b"", b" ", "é".encode() * 4, b"k" * 256, b'""', b"a\x7fb"])
 def test_a_malformed_key_is_a_422(client: TestClient, bad: bytes) -> None:
     response = create(client, {"Idempotency-Key": bad})
@@ -178,7 +205,7 @@ def test_a_session_remembers_its_last_keys_within_the_window() -> None:
 
 
 @pytest.mark.redis
-def test_redis_keys_are_bounded_per_session_and_a_keyed_delete_leaves_only_its_own(redis_url: str) -> None:
+def test_redis_keys_are_bounded_per_session_and_a_delete_leaves_them_and_its_own(redis_url: str) -> None:
     store = redis_store(redis_url, idempotency_keys=4)
     store.create(make_session("bounded"))
     for i in range(10):
@@ -190,9 +217,24 @@ def test_redis_keys_are_bounded_per_session_and_a_keyed_delete_leaves_only_its_o
     assert seen.value.record.robot_id == "robot-1"  # type: ignore[attr-defined]  # the session's owner
     assert store.head("bounded").version == 10  # not applied again
     store.delete("bounded", idempotency=Idempotency("bye", "fp"))
-    assert store._client.hkeys(store._key("bounded", "idem")) == [b"k:bye"]
+    tombstone = {b"k:k6", b"k:k7", b"k:k8", b"k:k9", b"k:bye"}
+    assert set(store._client.hkeys(store._key("bounded", "idem"))) == tombstone
     assert 0 < store._client.pttl(store._key("bounded", "idem")) <= 3600 * 1000
     with pytest.raises(AlreadyApplied) as seen:
         store.delete("bounded", idempotency=Idempotency("bye", "fp"))
     assert seen.value.record.robot_id == "robot-1"  # type: ignore[attr-defined]  # the deleted session's owner
+    store.close()
+
+
+@pytest.mark.redis
+def test_redis_commits_without_a_key_never_push_a_clients_key_out(redis_url: str) -> None:
+    store = redis_store(redis_url, idempotency_keys=3)
+    store.create(make_session("crowded"))
+    store.detect("crowded", [0.6], flat_idx=np.array([1]), idempotency=Idempotency("mine", "fp"))
+    for i in range(5):  # keyless commits: each records its own commit id
+        store.detect("crowded", [0.6], flat_idx=np.array([i]))
+    with pytest.raises(AlreadyApplied):
+        store.detect("crowded", [0.6], flat_idx=np.array([1]), idempotency=Idempotency("mine", "fp"))
+    assert store.head("crowded").version == 6  # the retry was not applied
+    assert store._client.zcard(store._key("crowded", "commits")) == 3  # commit ids are bounded too
     store.close()

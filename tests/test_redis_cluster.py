@@ -19,7 +19,7 @@ from tests.test_stores import make_session, redis_store
 
 pytestmark = pytest.mark.redis
 
-PARTS = ("meta", "lang", "vis", "lock", "summary", "idem", "idem_at")
+PARTS = ("meta", "lang", "vis", "lock", "summary", "idem", "idem_at", "commits")
 
 
 def test_every_key_of_a_session_is_in_one_slot(redis_cluster_url: str) -> None:
@@ -30,7 +30,7 @@ def test_every_key_of_a_session_is_in_one_slot(redis_cluster_url: str) -> None:
     slots = {store._client.keyslot(store._key("slotted", part)) for part in PARTS}
     assert len(slots) == 1
     stored = [part for part in PARTS if store._client.exists(store._key("slotted", part))]
-    assert set(stored) >= {"meta", "vis", "idem", "idem_at"}
+    assert set(stored) >= {"meta", "vis", "idem", "commits"}
     store.close()
 
 

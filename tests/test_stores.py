@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from app.belief.fusion import LayerLimits
-from app.belief.session import SensorModel, Session, new_session
+from app.belief.session import SensorModel, Session, language_log_likelihood, new_session
 from app.belief.summary import summarize
 from app.errors import Conflict, InvalidInput, NotFound, StoreUnavailable
 from app.grounding.mixture import Gaussian, GaussianMixture
@@ -263,6 +263,21 @@ def test_rejected_updates_change_nothing(store: Any) -> None:
         store.detect(session.id, [0.5], flat_idx=np.array([session.grid.n_voxels]))
     got = store.get(session.id)
     assert got.version == 0 and not got.belief.lang.any() and not got.belief.vis.any()
+
+
+def test_an_utterance_decided_against_another_target_class_is_refused(store: Any) -> None:
+    session = make_session()  # its target: backpack
+    store.create(session)
+    mixture = wide_mixture(np.random.default_rng(0))
+    log_likelihood = language_log_likelihood(session.grid, mixture)
+    # Decided while the session had no target yet (a concurrent utterance named it since).
+    change = changes.utterance(mixture, log_likelihood, session.grid, names_target="mug", target_read="")
+    with pytest.raises(Conflict):
+        store.update(session.id, change)
+    got = store.get(session.id)
+    assert got.version == 0 and got.target_label == "backpack" and not got.belief.lang.any()
+    same = changes.utterance(mixture, log_likelihood, session.grid, target_read="backpack")
+    assert store.update(session.id, same).version == 1
 
 
 def test_voxel_coordinates_equal_flat_indices_and_those_outside_the_grid_are_counted(store: Any) -> None:
@@ -1088,9 +1103,10 @@ def test_the_mirror_drops_a_session_only_under_the_name_it_was_used_by() -> None
     assert mirror.get("s") is None
 
 
-def test_an_unreachable_redis_raises_store_unavailable() -> None:
+def test_an_unreachable_redis_raises_store_unavailable(caplog: pytest.LogCaptureFixture) -> None:
     pytest.importorskip("redis")
-    store = open_store(f"redis://127.0.0.1:{free_port()}/0")
+    port = free_port()
+    store = open_store(f"redis://:s3cr3t@127.0.0.1:{port}/0")
     ops = StoreOps(store)
     for call in (
         lambda: ops.get("x"),
@@ -1100,8 +1116,10 @@ def test_an_unreachable_redis_raises_store_unavailable() -> None:
         lambda: ops.detect("x", [0.9], flat_idx=np.array([0])),
         lambda: ops.summary("x"),
     ):
-        with pytest.raises(StoreUnavailable):
+        with pytest.raises(StoreUnavailable) as raised:
             call()
+        assert str(port) not in str(raised.value) and "s3cr3t" not in str(raised.value)  # a client reads it
+    assert str(port) in caplog.text  # the operator does
     store.close()
 
 

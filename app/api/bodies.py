@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 from fastapi import Depends, Request
 from pydantic import TypeAdapter, ValidationError
 
+from app.api.deps import PrincipalDep
 from app.api.errors import summarise_errors
 from app.errors import InvalidInput, LimitExceeded, UnsupportedMediaType
 
@@ -84,10 +85,12 @@ async def read_json(request: Request, adapter: TypeAdapter[T]) -> T:
 
 
 def JsonBody(model: Any) -> Any:  # noqa: N802 (used like FastAPI's Body(), in Annotated)
-    """A dependency giving the request's JSON body validated as `model` (a pydantic model or type)."""
+    """A dependency giving the request's JSON body validated as `model` (a pydantic model or type), once
+    the caller is authenticated and within its rate: nobody unknown or over the rate has the service read
+    and validate a body (nor learns how it validates)."""
     adapter: TypeAdapter[Any] = TypeAdapter(model)
 
-    async def read_body(request: Request) -> Any:
+    async def read_body(request: Request, principal: PrincipalDep) -> Any:
         return await read_json(request, adapter)
 
     return Depends(read_body)

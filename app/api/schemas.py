@@ -15,6 +15,7 @@ from app.belief.session import DEFAULT_FALSE_POSITIVE_RATE, DEFAULT_TRUE_POSITIV
 from app.grounding.relations import Relation
 from app.scene_graph.model import Id, SceneGraph, Vec3
 from app.sessions.service import GridRequest, NewSession
+from app.settings import MAX_UTTERANCE_CHARS_CEILING
 
 if TYPE_CHECKING:
     from app.belief.grid import VoxelGrid
@@ -81,7 +82,9 @@ class GroundRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     scene_graph: SceneGraphPayload
-    utterance: str = Field(min_length=1, max_length=1000, examples=["I left my backpack on the table"])
+    utterance: str = Field(
+        min_length=1, max_length=MAX_UTTERANCE_CHARS_CEILING, examples=["I left my backpack on the table"]
+    )
     options: GroundOptions | None = None
     query_points: list[Vec3] | None = Field(
         default=None,
@@ -483,7 +486,7 @@ class UtteranceHistoryOut(BaseModel):
 class UtteranceIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    utterance: str = Field(min_length=1, max_length=1000)
+    utterance: str = Field(min_length=1, max_length=MAX_UTTERANCE_CHARS_CEILING)
     options: GroundOptions | None = None
 
 

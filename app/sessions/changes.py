@@ -56,17 +56,23 @@ def utterance(
     grid: VoxelGrid,
     *,
     names_target: str | None = None,
+    target_read: str | None = None,
     caller: Caller | None = None,
 ) -> Change:
     """Fuse one utterance (equation (3)): its mixture's `log_likelihood` on `grid` (the session's, from
     `app.belief.session.language_log_likelihood` at the session's span; sessions made through the API all
     have the default one). `names_target` names the target class in the same
-    update if the session has none yet."""
+    update if the session has none yet. `target_read`: the target class the decision to fuse was made
+    against, if one was (Conflict when the session's is another by now)."""
     mixture = float64_mixture(mixture)
 
     def compute(view: SessionView) -> Delta:
         _writable(view, caller)
         _same_grid(view, grid)
+        if target_read is not None and view.target_label != target_read:
+            # Another utterance named the target meantime: this one may be of another class.
+            msg = "the session's target class changed while the utterance was grounded; send it again"
+            raise Conflict(msg)
         meta = None
         if names_target and not view.target_label:
             check_target_label(names_target, view.label_map)

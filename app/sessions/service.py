@@ -137,6 +137,12 @@ def names_a_class(target: str, label_map: Mapping[int, str]) -> bool:
     return True
 
 
+def _summary_options(top_k: int, created_at: float) -> str:
+    """The name of a shared summary (`SessionStore.summary_get`): its options, and the incarnation of the
+    session it summarises (a session made again under its id restarts its versions)."""
+    return json.dumps({"format": SUMMARY_FORMAT, "top_k": top_k, "created_at": created_at}, sort_keys=True)
+
+
 def keyed_session_id(robot_id: str, idempotency: Idempotency) -> str:
     """The id a keyed creation gives its session: the same for a retry, so that the store finds it."""
     digest = hashlib.sha256(f"{robot_id}\0{idempotency.key}".encode()).digest()
@@ -224,6 +230,9 @@ class SessionService:
             if int(key) >= 2**32:
                 msg = f"label ids are uint32 (below 4294967296), got {key}"
                 raise InvalidInput(msg, field=f"label_map.{key}")
+            if int(key) in out:  # "7" and "007": one id named twice, and a JSON object keeps both
+                msg = f"label id {int(key)} is given twice (as {key!r} and another spelling)"
+                raise InvalidInput(msg, field=f"label_map.{key}")
             out[int(key)] = name
         return out
 
@@ -264,7 +273,12 @@ class SessionService:
             info = await self.store.create(session, max_per_robot=max_per_robot, idempotency=idempotency)
         except AlreadyApplied as exc:
             self._replay(exc.record, idempotency, caller)
-            return Applied(await self.store.head(session.id), replayed=True)
+            try:
+                return Applied(await self.store.head(session.id), replayed=True)
+            except NotFound:
+                # Its tombstone remembered the key: the creation was applied once, and deleted since.
+                msg = f"the session {session.id!r} made under this Idempotency-Key was deleted since"
+                raise NotFound(msg) from None
         await self._record(info.id, {"kind": "created"}, scene_graph=request.scene_graph)
         return Applied(info)
 
@@ -345,7 +359,14 @@ class SessionService:
                 names = target
             mixture = prepared.grounding.mixture
             log_likelihood = await self.run(language_log_likelihood, info.grid, mixture)
-            change = changes.utterance(mixture, log_likelihood, info.grid, names_target=names, caller=caller)
+            change = changes.utterance(
+                mixture,
+                log_likelihood,
+                info.grid,
+                names_target=names,
+                target_read=info.target_label,
+                caller=caller,
+            )
             cause["named_target"] = names
             change = dataclasses.replace(change, event=lambda _: cause)
             try:
@@ -353,7 +374,10 @@ class SessionService:
             except AlreadyApplied as exc:
                 answer, replayed = self._replay(exc.record, idempotency, caller).answer, True
         else:
-            await self.store.announce(info.id, cause)
+            try:
+                await self.store.announce(info.id, cause, idempotency=idempotency)
+            except AlreadyApplied as exc:  # the key came with an utterance that was fused (or another change)
+                answer, replayed = self._replay(exc.record, idempotency, caller).answer, True
         if not replayed:
             said = utterance_part(prepared.utterance, prepared.fused, prepared.reason, prepared.grounding)
             await self._record(info.id, cause, utterance=said, summarised=prepared.fused)
@@ -417,24 +441,27 @@ class SessionService:
         return await self._belief(info, top_k)
 
     async def _belief(self, info: SessionInfo, top_k: int) -> Belief:
-        cached = self.summaries.get(info.id, info.version, top_k)
+        cached = self.summaries.get(info.id, info.created_at, info.version, top_k)
         if cached is not None:
             return cached
-        wider = self.summaries.get(info.id, info.version, RECORD_TOP_K) if top_k < RECORD_TOP_K else None
+        wider = None
+        if top_k < RECORD_TOP_K:
+            wider = self.summaries.get(info.id, info.created_at, info.version, RECORD_TOP_K)
         if wider is not None:  # the recording's summary of this version: its first top_k voxels are these
             top = wider.summary.top_voxels[:top_k]
             belief = dataclasses.replace(wider, summary=dataclasses.replace(wider.summary, top_voxels=top))
             self.summaries.put(top_k, belief)
             return belief
-        options = json.dumps({"format": SUMMARY_FORMAT, "top_k": top_k}, sort_keys=True)
-        stored = await self.store.summary_get(info.id, info.version, options)
+        stored = await self.store.summary_get(info.id, info.version, _summary_options(top_k, info.created_at))
         if stored is not None:
-            belief = Belief(info.id, info.version, info.target_label, PosteriorSummary.from_dict(stored))
+            summary = PosteriorSummary.from_dict(stored)
+            belief = Belief(info.id, info.version, info.target_label, summary, info.created_at)
         else:
             session = await self.store.load(info.id)  # may be newer than `info`
             summary = await self.run(session.summary, top_k=top_k)
+            options = _summary_options(top_k, session.created_at)
             await self.store.summary_put(info.id, session.version, options, summary.to_dict())
-            belief = Belief(info.id, session.version, session.target_label, summary)
+            belief = Belief(info.id, session.version, session.target_label, summary, session.created_at)
         self.summaries.put(top_k, belief)
         return belief
 
@@ -535,10 +562,10 @@ class SessionService:
         asked for is kept)."""
         info = await self._readable(caller, session_id)
         cached = self._top_downs.get(session_id)
-        if cached is None or cached.version != info.version or cached.grid != info.grid:
+        if cached is None or (cached.version, cached.created_at) != (info.version, info.created_at):
             session = await self.store.load(session_id)  # may be newer than `info`
             mass = await self.run(column_mass, session.grid, session.belief.lang, session.belief.vis)
-            cached = TopDown(session_id, session.version, session.grid, mass)
+            cached = TopDown(session_id, session.version, session.grid, mass, session.created_at)
             self._top_downs[session_id] = cached
         self._top_downs.move_to_end(session_id)
         while len(self._top_downs) > TOP_DOWN_SESSIONS:

@@ -1,7 +1,8 @@
-"""Belief summaries by (session, version, top_k): an unchanged belief is not summarised twice; and the other
-views a dashboard reads of a session (its top-down mass, its utterances).
+"""Belief summaries by (session, creation time, version, top_k): an unchanged belief is not summarised twice;
+and the other views a dashboard reads of a session (its top-down mass, its utterances).
 
-Versions are the store's, so entries stay right across replicas; an update makes a new key. Watched
+Versions are the store's, so entries stay right across replicas; an update makes a new key. A session
+deleted and made again under its id restarts its versions: its creation time tells the two apart. Watched
 sessions are summarised ahead of their next poll: when a session's belief was read within the last
 `watch_s` seconds, `SessionService` summarises each new version in the background (one job per session at
 a time; updates that land during a job make it run once more), so that a dashboard's poll finds the
@@ -32,6 +33,7 @@ class Belief:
     version: int
     target_label: str  # "" = not known yet
     summary: PosteriorSummary
+    created_at: float  # the session's: with its id, names the incarnation the version is of
 
 
 @dataclass(frozen=True)
@@ -43,6 +45,7 @@ class TopDown:
     version: int
     grid: VoxelGrid
     mass: np.ndarray  # (nx, ny) float32, sums to one
+    created_at: float  # the session's (`Belief.created_at`)
 
 
 @dataclass(frozen=True)
@@ -64,22 +67,23 @@ class SummaryCache:
         self.maxsize = maxsize
         self.watch_s = watch_s
         self._clock = clock
-        self._items: OrderedDict[tuple[str, int, int], Belief] = OrderedDict()
+        self._items: OrderedDict[tuple[str, float, int, int], Belief] = OrderedDict()
         self._lock = threading.Lock()
         self._watched: dict[str, tuple[float, set[int]]] = {}  # session -> (last read, top_k values read)
         self._running: set[str] = set()
         self._again: set[str] = set()
 
-    def get(self, session_id: str, version: int, top_k: int) -> Belief | None:
+    def get(self, session_id: str, created_at: float, version: int, top_k: int) -> Belief | None:
+        key = (session_id, created_at, version, top_k)
         with self._lock:
-            value = self._items.get((session_id, version, top_k))
+            value = self._items.get(key)
             if value is not None:
-                self._items.move_to_end((session_id, version, top_k))
+                self._items.move_to_end(key)
             return value
 
     def put(self, top_k: int, belief: Belief) -> None:
         with self._lock:
-            self._items[(belief.session_id, belief.version, top_k)] = belief
+            self._items[(belief.session_id, belief.created_at, belief.version, top_k)] = belief
             while len(self._items) > self.maxsize:
                 self._items.popitem(last=False)
 

@@ -277,9 +277,12 @@ class SessionStore(Protocol):
         `announce`."""
         ...
 
-    async def announce(self, session_id: str, cause: Mapping[str, Any]) -> None:
+    async def announce(
+        self, session_id: str, cause: Mapping[str, Any], *, idempotency: Idempotency | None = None
+    ) -> None:
         """An event for the session's current version that changes nothing (an utterance not fused), in
-        order with its updates; NotFound if absent."""
+        order with its updates; NotFound if absent, AlreadyApplied (and no event) if the session remembers
+        the key: an announcement remembers none, but its key must not be one an update used."""
         ...
 
     def close(self) -> None: ...

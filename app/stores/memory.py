@@ -315,7 +315,7 @@ class MemorySessionStore:
     def _replay(self, record: dict[str, Any]) -> None:
         sid, lsn, op = record["sid"], record["lsn"], record["op"]
         entry = self._entries.get(sid)
-        if op == "tombstone" or (op == "delete" and "idem" in record):
+        if op == "tombstone" or (op == "delete" and "keys" in record):
             self._tombstones[sid] = (record["robot"], self._keys(record.get("keys", [])))
             if "idem" in record:
                 self._tombstones[sid][1].add(record["idem"][0], IdempotencyRecord.unpack(record["idem"][1]))
@@ -462,24 +462,28 @@ class MemorySessionStore:
     def _remove(
         self, entry: _Entry, idempotency: Idempotency | None = None, *, announce: bool = False
     ) -> bool:
-        """Log the deletion and forget the session; False if someone else removed it first. With a key, the
-        session's keys and the delete's stay as a tombstone. `announce`: publish its "deleted" event (an
-        expiry has none, as on Redis, where keys expire by themselves)."""
+        """Log the deletion and forget the session; False if someone else removed it first. A delete
+        (`announce`) leaves the session's keys and its own, if any, as a tombstone: a retry of the session's
+        creation or of the delete is then applied once. `announce`: publish its "deleted" event (an expiry
+        has none, as on Redis, where keys expire by themselves)."""
         with entry.lock:
             if entry.deleted:
                 return False
             now = self._clock()
             entry.keys.check(idempotency, now)
             record: dict[str, Any] = {"op": "delete", "sid": entry.session.id, "t": now}
+            tombstone = idempotency is not None or (announce and bool(entry.keys.items()))
+            if tombstone:
+                record |= {"robot": entry.session.robot_id, "keys": _packed_keys(entry.keys.items())}
             remembered = None
             if idempotency is not None:
                 result = UpdateResult(entry.session.id, entry.session.version, 0)
                 remembered = IdempotencyRecord.of(idempotency, result, now, robot_id=entry.session.robot_id)
-                record |= {"robot": entry.session.robot_id, "keys": _packed_keys(entry.keys.items())}
                 record |= _idem_field(idempotency, remembered)
             self._append(record)
             if idempotency is not None and remembered is not None:
                 entry.keys.add(idempotency.key, remembered)
+            if tombstone:
                 with self._registry_lock:
                     self._tombstones[entry.session.id] = (entry.session.robot_id, entry.keys)
             entry.deleted = True
@@ -505,6 +509,9 @@ class MemorySessionStore:
             with self._registry_lock:
                 existing = self._entries.get(stored.id)
                 if existing is None:
+                    tombstone = self._tombstones.get(stored.id)
+                    if tombstone is not None:  # a retry of a deleted session's creation is not applied again
+                        tombstone[1].check(idempotency, now)
                     # Counted and created under the registry lock: parallel creations cannot pass the limit.
                     if max_per_robot is not None:
                         live = sum(
@@ -669,20 +676,29 @@ class MemorySessionStore:
             last=last,
         )
 
-    def _announce(self, session_id: str, cause: Mapping[str, Any]) -> None:
-        with self._locked(session_id) as entry:
-            self._publish(entry.session, cause, self._clock())
+    def _announce_locked(
+        self, entry: _Entry, cause: Mapping[str, Any], idempotency: Idempotency | None
+    ) -> None:
+        now = self._clock()
+        entry.keys.check(idempotency, now)
+        self._publish(entry.session, cause, now)
 
-    async def announce(self, session_id: str, cause: Mapping[str, Any]) -> None:
+    def _announce(self, session_id: str, cause: Mapping[str, Any], idempotency: Idempotency | None) -> None:
+        with self._locked(session_id) as entry:
+            self._announce_locked(entry, cause, idempotency)
+
+    async def announce(
+        self, session_id: str, cause: Mapping[str, Any], *, idempotency: Idempotency | None = None
+    ) -> None:
         entry = self._head(session_id)
         if entry.lock.acquire(blocking=False):  # free: published here, without a thread switch
             try:
                 if not entry.deleted:
-                    self._publish(entry.session, cause, self._clock())
+                    self._announce_locked(entry, cause, idempotency)
                     return
             finally:
                 entry.lock.release()
-        await self._off_loop(partial(self._announce, session_id, cause))
+        await self._off_loop(partial(self._announce, session_id, cause, idempotency))
 
     async def record(self, session_id: str, frame: bytes, limit: int) -> None:
         with self._registry_lock:  # under it a removed session's log is dropped: none is made again

@@ -15,21 +15,21 @@ local function hset_pairs(key, at, n)
 end
 """
 
-# Remember an idempotency key (KEYS[i], KEYS[i + 1]: the idem hash and its sorted set) and forget those
-# past the window or beyond the count.
+# Remember an idempotency key in a hash (KEYS[h]) and a sorted set of its keys (KEYS[z]), and forget the set's
+# keys past the window or beyond the count.
 _REMEMBER = """
-local function remember(i, key, record, now_ms, window_ms, max_keys)
-    redis.call('HSET', KEYS[i], key, record)
-    redis.call('ZADD', KEYS[i + 1], now_ms, key)
+local function remember(h, z, key, record, now_ms, window_ms, max_keys)
+    redis.call('HSET', KEYS[h], key, record)
+    redis.call('ZADD', KEYS[z], now_ms, key)
     local oldest = '(' .. (now_ms - window_ms)
-    local stale = redis.call('ZRANGEBYSCORE', KEYS[i + 1], '-inf', oldest, 'LIMIT', 0, 64)
-    local excess = redis.call('ZCARD', KEYS[i + 1]) - max_keys
+    local stale = redis.call('ZRANGEBYSCORE', KEYS[z], '-inf', oldest, 'LIMIT', 0, 64)
+    local excess = redis.call('ZCARD', KEYS[z]) - max_keys
     if excess > 0 then
-        for _, k in ipairs(redis.call('ZRANGE', KEYS[i + 1], 0, excess - 1)) do table.insert(stale, k) end
+        for _, k in ipairs(redis.call('ZRANGE', KEYS[z], 0, excess - 1)) do table.insert(stale, k) end
     end
     for _, k in ipairs(stale) do
-        redis.call('HDEL', KEYS[i], k)
-        redis.call('ZREM', KEYS[i + 1], k)
+        redis.call('HDEL', KEYS[h], k)
+        redis.call('ZREM', KEYS[z], k)
     end
 end
 """
@@ -47,7 +47,9 @@ local function event(i, at, version)
 end
 """
 
-# KEYS: meta, lock, lang, vis, summary, idem, idem_at, events, then the hashes written.
+# KEYS: meta, lock, lang, vis, summary, idem, idem_at, events, commits, then the hashes written.
+# A commit's own id ("c:<id>", the key of a commit without a client's key) is counted in `commits`, a client's
+# key in idem_at: keyless commits, however many, never push a client's key out of the bounded set.
 # ARGV: [1] version read, [2] updated_at read (with the version, the name of the state read: a session
 # deleted and created again under its id restarts its versions), [3] lock token ("" without the lock),
 # [4] new updated_at, [5] expiry ms ("" for none), [6] idempotency key, [7] its record, [8] now ms,
@@ -68,39 +70,40 @@ if state[1] ~= ARGV[1] or state[2] ~= ARGV[2] then return {-2} end
 local holder = redis.call('GET', KEYS[2])
 if holder and holder ~= ARGV[3] then return {-2} end
 local at = 16
-for k = 9, 8 + tonumber(ARGV[11]) do
+for k = 10, 9 + tonumber(ARGV[11]) do
     local n = tonumber(ARGV[at])
     hset_pairs(KEYS[k], at + 1, n)
     at = at + 1 + 2 * n
 end
 local new = tonumber(state[1]) + 1
 redis.call('HSET', KEYS[1], 'version', new, 'updated_at', ARGV[4])
-remember(6, ARGV[6], ARGV[7], tonumber(ARGV[8]), tonumber(ARGV[9]), tonumber(ARGV[10]))
+local keys_of = string.sub(ARGV[6], 1, 2) == 'c:' and 9 or 7
+remember(6, keys_of, ARGV[6], ARGV[7], tonumber(ARGV[8]), tonumber(ARGV[9]), tonumber(ARGV[10]))
 event(8, 12, string.format('%d', new))
 if ARGV[5] ~= '' then
-    for _, k in ipairs({1, 3, 4, 5, 6, 7, 8}) do redis.call('PEXPIREAT', KEYS[k], ARGV[5]) end
+    for _, k in ipairs({1, 3, 4, 5, 6, 7, 8, 9}) do redis.call('PEXPIREAT', KEYS[k], ARGV[5]) end
 end
 return {new}
 """
 )
 
-# KEYS: meta, lang, vis, summary, idem, idem_at, events.
+# KEYS: meta, lang, vis, summary, idem, idem_at, events, commits.
 # ARGV: [1] idempotency key ("" for none), [2] its record, [3] now ms, [4] window ms, [5] keys kept,
 # [6] expiry ms ("" for none), [7] the version created, [8]-[11] its event (`_EVENT`), then for meta, lang
 # and vis: the number of fields, then field, value, ...
-# Returns {0} when created, {-1} when the session exists, {-3, record} when it exists made under the key.
+# Returns {0} when created, {-1} when the session exists, {-3, record} when it was made under the key (it
+# exists, or it was deleted and its tombstone remembers the key).
 # The events stream of a deleted incarnation stays: the new one's events follow its "deleted" event.
 CREATE_SCRIPT = (
     _HSET_CHUNKS
     + _REMEMBER
     + _EVENT
     + """
-if redis.call('EXISTS', KEYS[1]) == 1 then
-    local seen = ARGV[1] ~= '' and redis.call('HGET', KEYS[5], ARGV[1])
-    if seen then return {-3, seen} end
-    return {-1}
-end
-redis.call('DEL', KEYS[2], KEYS[3], KEYS[4], KEYS[5], KEYS[6])  -- what a deleted incarnation left
+-- The key's record is the live session's, or a deleted one's tombstone: a retry of its creation either way.
+local seen = ARGV[1] ~= '' and redis.call('HGET', KEYS[5], ARGV[1])
+if seen then return {-3, seen} end
+if redis.call('EXISTS', KEYS[1]) == 1 then return {-1} end
+redis.call('DEL', KEYS[2], KEYS[3], KEYS[4], KEYS[5], KEYS[6], KEYS[8])  -- what a deleted incarnation left
 local at = 12
 for k = 1, 3 do
     local n = tonumber(ARGV[at])
@@ -108,7 +111,7 @@ for k = 1, 3 do
     at = at + 1 + 2 * n
 end
 if ARGV[1] ~= '' then
-    remember(5, ARGV[1], ARGV[2], tonumber(ARGV[3]), tonumber(ARGV[4]), tonumber(ARGV[5]))
+    remember(5, 6, ARGV[1], ARGV[2], tonumber(ARGV[3]), tonumber(ARGV[4]), tonumber(ARGV[5]))
 end
 event(7, 8, ARGV[7])
 if ARGV[6] ~= '' then
@@ -120,7 +123,7 @@ return {0}
 """
 )
 
-# KEYS: meta, lang, vis, summary, idem, idem_at, events.
+# KEYS: meta, lang, vis, summary, idem, idem_at, events, commits.
 # ARGV: [1] idempotency key ("" for none), [2] its record, [3] now ms, [4] window ms, [5]-[8] the "deleted"
 # event (`_EVENT`; its version is the session's last), [9] how long the events stream stays (ms).
 # Returns {0} when deleted, {-1} without the session, {-3, record} when the key was seen.
@@ -135,28 +138,34 @@ local version = redis.call('HGET', KEYS[1], 'version')
 if not version then return {-1} end
 event(7, 5, version)
 redis.call('PEXPIRE', KEYS[7], ARGV[9])
-redis.call('DEL', KEYS[1], KEYS[2], KEYS[3], KEYS[4], KEYS[5], KEYS[6])
-if ARGV[1] ~= '' then  -- the tombstone: this delete's record, for the window
+-- The tombstone, for the window: the session's client keys (a retry of its creation or of an update finds
+-- them) and this delete's; its commit ids go.
+for _, k in ipairs(redis.call('ZRANGE', KEYS[8], 0, -1)) do redis.call('HDEL', KEYS[5], k) end
+redis.call('DEL', KEYS[1], KEYS[2], KEYS[3], KEYS[4], KEYS[8])
+if ARGV[1] ~= '' then
     redis.call('HSET', KEYS[5], ARGV[1], ARGV[2])
     redis.call('ZADD', KEYS[6], ARGV[3], ARGV[1])
-    redis.call('PEXPIRE', KEYS[5], ARGV[4])
-    redis.call('PEXPIRE', KEYS[6], ARGV[4])
 end
+redis.call('PEXPIRE', KEYS[5], ARGV[4])
+redis.call('PEXPIRE', KEYS[6], ARGV[4])
 return {0}
 """
 )
 
-# KEYS: meta, events. ARGV: [1]-[4] the event (`_EVENT`) of the session's current version.
-# Returns 1 when published, 0 without the session.
+# KEYS: meta, events, idem. ARGV: [1]-[4] the event (`_EVENT`) of the session's current version, [5] an
+# idempotency key ("" for none; an announcement remembers none, but refuses one an update used).
+# Returns {1} when published, {0} without the session, {-3, record} when the key was seen (nothing published).
 ANNOUNCE_SCRIPT = (
     _EVENT
     + """
 local version = redis.call('HGET', KEYS[1], 'version')
-if not version then return 0 end
+if not version then return {0} end
+local seen = ARGV[5] ~= '' and redis.call('HGET', KEYS[3], ARGV[5])
+if seen then return {-3, seen} end
 event(2, 1, version)
 local ttl = redis.call('PTTL', KEYS[1])
 if ttl > 0 then redis.call('PEXPIRE', KEYS[2], ttl) end
-return 1
+return {1}
 """
 )
 

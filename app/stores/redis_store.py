@@ -16,7 +16,9 @@ Keys of session S (the hash tag {S} keeps them in one cluster slot):
                           version once, fleet-wide (a reader uses it only if its version is current)
     <prefix>:s:{S}:idem   hash: idempotency key -> `IdempotencyRecord` of the commit made under it: a
                           client's Idempotency-Key ("k:<key>"), or the commit's own id ("c:<id>")
-    <prefix>:s:{S}:idem_at  sorted set: the same keys scored by when they were written (ms)
+    <prefix>:s:{S}:idem_at  sorted set: the idem hash's client keys scored by when they were written (ms)
+    <prefix>:s:{S}:commits  sorted set: the same for its commit ids, bounded apart: keyless commits never push
+                          a client's key out
     <prefix>:s:{S}:events  stream: the session's events, one per version, written by the script that
                           commits it (`app.stores.redis_events`), each also published on <prefix>:events
     <prefix>:sessions, <prefix>:robot:<R>   sorted sets of session ids scored by expiry time (ms), as last
@@ -59,7 +61,9 @@ and writes its record in the same script call. A commit sent again (redis-py res
 timed out or whose connection dropped, and a lost reply is resent here too) finds its record and is told
 it landed; another request with a client's key finds the key's record and changes nothing
 (`AlreadyApplied`). The records of a session are bounded in number and age (`idempotency_keys`,
-`idempotency_window_s`); a keyed delete leaves its record (and no other) for the window.
+`idempotency_window_s`), the client's keys and the commit ids each on their own; a delete leaves the
+session's client keys and its own (a tombstone) for the window, so that a retry of the session's creation
+is not applied again.
 
 Locks: a lock holder renews its lock every third of `lock_ttl_s` while it works, so the ttl can be short
 (3 s): a holder that died (kill -9 mid-update) leaves a lock that other writers wait out within that ttl.
@@ -168,7 +172,9 @@ Writes = dict[str, dict[str, Any]]
 
 
 def _unavailable(exc: Exception) -> StoreUnavailable:
-    msg = f"the session store (Redis) is unavailable: {type(exc).__name__}: {exc}"
+    # The client's error names the server (its address, even its password in a URL): logged, never answered.
+    log.warning("session store (Redis) error: %s: %s", type(exc).__name__, exc)
+    msg = "the session store is unavailable; try again"
     return StoreUnavailable(msg)
 
 
@@ -750,7 +756,7 @@ class RedisSessionStore:
         given = idempotency or Idempotency(key, "")
         record = IdempotencyRecord.of(given, result, now, commit_id, view.robot_id)
         expiry = self._expiry_ms(now)
-        parts = ("meta", "lock", "lang", "vis", "summary", "idem", "idem_at", "events")
+        parts = ("meta", "lock", "lang", "vis", "summary", "idem", "idem_at", "events", "commits")
         keys = [self._key(session_id, part) for part in parts]
         stamp = view.stamp
         args: list[Any] = [stamp[0], stamp[1], token, repr(now), int(expiry) if math.isfinite(expiry) else ""]
@@ -849,7 +855,7 @@ class RedisSessionStore:
             args.append(len(fields))
             for name, value in fields.items():
                 args += [name, value]
-        key_parts = ("meta", "lang", "vis", "summary", "idem", "idem_at", "events")
+        key_parts = ("meta", "lang", "vis", "summary", "idem", "idem_at", "events", "commits")
         keys = [self._key(session.id, part) for part in key_parts]
         outcome = self._script("create")(keys=keys, args=args)
         if int(outcome[0]) < 0:
@@ -1011,7 +1017,7 @@ class RedisSessionStore:
         if idempotency is not None:
             result = UpdateResult(session_id, 0, 0)
             packed = IdempotencyRecord.of(idempotency, result, now, robot_id=robot_id).pack()
-        parts = ("meta", "lang", "vis", "summary", "idem", "idem_at", "events")
+        parts = ("meta", "lang", "vis", "summary", "idem", "idem_at", "events", "commits")
         keys = [self._key(session_id, part) for part in parts]
         args: list[Any] = [key, packed, int(now * 1000), self.idempotency_window_ms]
         args += self._event_args(session_id, static, static["target_label"], now, {"kind": "deleted"})
@@ -1029,18 +1035,24 @@ class RedisSessionStore:
     async def delete(self, session_id: str, *, idempotency: Idempotency | None = None) -> None:
         await _off_loop(functools.partial(self._delete, session_id, idempotency))
 
-    def _announce(self, session_id: str, cause: Mapping[str, Any]) -> None:
+    def _announce(self, session_id: str, cause: Mapping[str, Any], idempotency: Idempotency | None) -> None:
         static_raw = self._client.hget(self._key(session_id, "meta"), "static")
         if static_raw is None:
             raise _not_found(session_id)
         static = _decode_static(static_raw)
-        keys = [self._key(session_id, "meta"), self._key(session_id, "events")]
+        keys = [self._key(session_id, part) for part in ("meta", "events", "idem")]
         args = self._event_args(session_id, static, static["target_label"], self._clock(), cause)
-        if not self._script("announce")(keys=keys, args=args):
+        args.append(f"k:{idempotency.key}" if idempotency is not None else "")
+        outcome = self._script("announce")(keys=keys, args=args)
+        if int(outcome[0]) == -3:
+            raise AlreadyApplied(IdempotencyRecord.unpack(outcome[1]))
+        if int(outcome[0]) == 0:
             raise _not_found(session_id)
 
-    async def announce(self, session_id: str, cause: Mapping[str, Any]) -> None:
-        await _off_loop(functools.partial(self._announce, session_id, cause))
+    async def announce(
+        self, session_id: str, cause: Mapping[str, Any], *, idempotency: Idempotency | None = None
+    ) -> None:
+        await _off_loop(functools.partial(self._announce, session_id, cause, idempotency))
 
     def _record(self, session_id: str, frame: bytes, limit: int) -> None:
         keys = [self._key(session_id, "rec"), self._key(session_id, "meta")]

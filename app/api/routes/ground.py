@@ -23,7 +23,7 @@ from app.api.schemas import (
     TargetOut,
     UniformBoxOut,
 )
-from app.errors import LimitExceeded
+from app.errors import InvalidInput, LimitExceeded
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.sensor import Grounding, LanguageSensor
 from app.scene_graph.limits import check_coordinates, check_scene_graph
@@ -90,8 +90,16 @@ def within_limits(scene_graph: SceneGraph, settings: Settings, field: str) -> Sc
     )
 
 
+def check_utterance(utterance: str, settings: Settings) -> None:
+    """InvalidInput if the utterance is longer than `max_utterance_chars` (the schema allows the ceiling)."""
+    if len(utterance) > settings.max_utterance_chars:
+        msg = f"{len(utterance)} characters exceed the limit of {settings.max_utterance_chars}"
+        raise InvalidInput(msg, field="utterance")
+
+
 def checked_request(body: GroundRequest, settings: Settings) -> SceneGraph:
     """The request's scene graph, native, after its limits are checked."""
+    check_utterance(body.utterance, settings)
     scene_graph = resolve_scene_graph(body.scene_graph, settings)
     if body.query_points is not None:
         if len(body.query_points) > settings.max_query_points:

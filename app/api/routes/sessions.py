@@ -13,7 +13,7 @@ from app.api.bodies import JsonBody, json_request_body, schema_ref
 from app.api.deps import PrincipalDep, SensorsDep, ServicesDep, SessionsDep
 from app.api.errors import error_responses
 from app.api.idempotency import REPLAYED_HEADER, IdempotencyDep, replayable, with_answer
-from app.api.routes.ground import caller_hypotheses, resolve_scene_graph, to_response
+from app.api.routes.ground import caller_hypotheses, check_utterance, resolve_scene_graph, to_response
 from app.api.scene_graph_bodies import SceneGraphBody, with_spark_dsg
 from app.api.wire import BELIEF_RESPONSES, OBSERVATION_REQUEST_BODY, belief_grid_response, read_batch
 from app.scene_graph.model import SceneGraph
@@ -33,8 +33,12 @@ _NOT_MODIFIED: dict[int | str, dict[str, object]] = {
 
 
 def _unchanged(version: int, if_none_match: str | None) -> bool:
-    """Whether If-None-Match names the belief version's ETag ("v<version>")."""
-    return if_none_match is not None and f'"v{version}"' in [t.strip() for t in if_none_match.split(",")]
+    """Whether If-None-Match names the belief version's ETag ("v<version>") or is "*" (RFC 9110 §13.1.2:
+    weak comparison, so a W/ tag that a proxy weakened still matches)."""
+    if if_none_match is None:
+        return False
+    tags = [t.strip().removeprefix("W/") for t in if_none_match.split(",")]
+    return "*" in tags or f'"v{version}"' in tags
 
 
 def _marked(applied: Applied[T], response: Response) -> Applied[T]:
@@ -121,7 +125,7 @@ async def put_scene_graph(
     "/{session_id}/utterances",
     operation_id="add_utterance",
     response_model=schemas.UtteranceOut,
-    responses={**_WRITE_ERRORS, **replayable()},
+    responses={**error_responses(400, *_AUTH, 404, 408, 409, 413, 415, 422, 503), **replayable()},
     openapi_extra={"requestBody": json_request_body(schema_ref("UtteranceIn"))},
 )
 async def post_utterance(
@@ -135,6 +139,7 @@ async def post_utterance(
     idempotency: IdempotencyDep,
 ) -> schemas.UtteranceOut:
     """Ground an utterance in the session's scene graph and fuse it unless its target is another class."""
+    check_utterance(body.utterance, services.settings)
     options = body.options or schemas.GroundOptions()
     ground = partial(services.ground, sensors, options.grounder, options.proposer)
     ground = partial(ground, utterance=body.utterance, hypotheses=caller_hypotheses(options))
