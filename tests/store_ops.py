@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import json
 import threading
 from collections.abc import Coroutine
 from typing import Any, TypeVar
@@ -33,17 +32,13 @@ from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
 from app.sessions import changes
 from app.sessions.changes import INLINE_BATCH_VOXELS, Caller
+from app.sessions.service import summary_options
 from app.stores.base import Change, Idempotency, SessionStore
 
 T = TypeVar("T")
 
 #: The most voxels a batch may carry here (the service passes its `max_batch_voxels`).
 MAX_BATCH_VOXELS = 4_000_000
-
-
-def summary_options(top_k: int) -> str:
-    """How `SessionService` names a summary's options in the store (`summary_get`/`summary_put`)."""
-    return json.dumps({"top_k": top_k}, sort_keys=True)
 
 
 class StoreOps:
@@ -227,7 +222,7 @@ class StoreOps:
 
         async def summary() -> PosteriorSummary:
             info = await self.store.head(session_id)
-            options = summary_options(top_k)
+            options = summary_options(top_k, info.created_at)
             stored = await self.store.summary_get(session_id, info.version, options)
             if stored is not None:
                 return PosteriorSummary.from_dict(stored, version=info.version)

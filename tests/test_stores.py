@@ -33,11 +33,12 @@ from app.errors import Conflict, InvalidInput, NotFound, StoreUnavailable
 from app.grounding.mixture import Gaussian, GaussianMixture
 from app.scene_graph.model import SceneGraph
 from app.sessions import changes
+from app.sessions.service import summary_options
 from app.sim.service import free_port
 from app.stores import MemorySessionStore, SessionStore, open_store
 from app.stores.memory import _HEADER
 from tests.harness import RedisServer
-from tests.store_ops import StoreOps, summary_options
+from tests.store_ops import StoreOps
 
 REPO = Path(__file__).resolve().parent.parent
 SCENE_DICT = {
@@ -673,8 +674,9 @@ def test_replicas_share_each_version_summary_and_never_serve_a_stale_one(
             summarize(expected.grid, expected.belief.lang, expected.belief.vis, SCENE, top_k=3),
             version=expected.version,
         )
+        options = summary_options(3, expected.created_at)
         for reader in (first, second):  # the last version's entry is not this version's summary
-            assert reader.run(reader.summary_get(session.id, expected.version, summary_options(3))) is None
+            assert reader.run(reader.summary_get(session.id, expected.version, options)) is None
         replica = (first, second)[int(rng.integers(0, 2))]
         assert replica.summary(session.id, top_k=3) == reference  # computed and stored
         assert second.summary(session.id, top_k=3) == reference  # read back, not recomputed

@@ -137,7 +137,7 @@ def names_a_class(target: str, label_map: Mapping[int, str]) -> bool:
     return True
 
 
-def _summary_options(top_k: int, created_at: float) -> str:
+def summary_options(top_k: int, created_at: float) -> str:
     """The name of a shared summary (`SessionStore.summary_get`): its options, and the incarnation of the
     session it summarises (a session made again under its id restarts its versions)."""
     return json.dumps({"format": SUMMARY_FORMAT, "top_k": top_k, "created_at": created_at}, sort_keys=True)
@@ -452,14 +452,14 @@ class SessionService:
             belief = dataclasses.replace(wider, summary=dataclasses.replace(wider.summary, top_voxels=top))
             self.summaries.put(top_k, belief)
             return belief
-        stored = await self.store.summary_get(info.id, info.version, _summary_options(top_k, info.created_at))
+        stored = await self.store.summary_get(info.id, info.version, summary_options(top_k, info.created_at))
         if stored is not None:
             summary = PosteriorSummary.from_dict(stored)
             belief = Belief(info.id, info.version, info.target_label, summary, info.created_at)
         else:
             session = await self.store.load(info.id)  # may be newer than `info`
             summary = await self.run(session.summary, top_k=top_k)
-            options = _summary_options(top_k, session.created_at)
+            options = summary_options(top_k, session.created_at)
             await self.store.summary_put(info.id, session.version, options, summary.to_dict())
             belief = Belief(info.id, session.version, session.target_label, summary, session.created_at)
         self.summaries.put(top_k, belief)
