@@ -18,6 +18,7 @@ from app.data.augment import FrameMotion
 from app.data.build import (
     SPLITS,
     BuildConfig,
+    BuildSummary,
     build_cases,
     read_ai2thor,
     read_scannet,
@@ -30,6 +31,7 @@ from app.data.cases import GroundingCase, read_cases
 from app.data.conventions import Convention, holds
 from app.data.label_vocabularies import SCANNET_TO_NYU
 from app.data.templates import RELATION_PHRASES, indefinite, is_plural, render_utterance, speaker_names
+from app.errors import InvalidInput
 from app.grounding import box_relations as rel
 from app.grounding.box_relations import Box, TrueReading, true_groundings
 from app.grounding.relations import Relation
@@ -599,3 +601,39 @@ def test_write_build_returns_the_summary_it_writes(tmp_path, scenes):
         s: summary.total(s) for s in SPLITS
     }
     assert summary.total("train") == sum(1 for _ in read_cases(tmp_path / "train.jsonl"))
+
+
+def _files_of(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def test_a_refused_or_failed_build_leaves_the_previous_build_whole(tmp_path, scenes, monkeypatch):
+    out = tmp_path / "cases"
+    write_build(scenes, out, dataclasses.replace(CONFIG, augment=0))
+    before = _files_of(out)
+    assert sorted(before) == sorted([*(f"{s}.jsonl" for s in SPLITS), "summary.json"])
+
+    with pytest.raises(InvalidInput, match="val seen fraction"):
+        dataclasses.replace(CONFIG, val_seen_fraction=1.5)
+    command = ["data", "build", "--scannet", str(SCANNET), "--out", str(out), "--no-progress"]
+    with pytest.raises(
+        SystemExit, match=r"vlmap data build: .*unseen fraction must lie in \[0, 1\], got 1.5"
+    ):
+        main([*command, "--unseen-fraction", "1.5"])
+    assert _files_of(out) == before
+
+    def stopped_half_way(*args, **kwargs):  # a build killed or failing after some cases are written
+        yield from list(build_cases(*args, **kwargs))[:50]
+        msg = "stopped"
+        raise RuntimeError(msg)
+
+    monkeypatch.setattr("app.data.build.build_cases", stopped_half_way)
+    with pytest.raises(RuntimeError, match="stopped"):
+        write_build(scenes, out, dataclasses.replace(CONFIG, augment=1))
+    assert _files_of(out) == before  # not a truncated train.jsonl beside the old summary, nor temporary files
+
+
+def test_summary_lists_the_sources_of_each_split_in_sorted_order():
+    summary = BuildSummary()
+    summary.scenes["train"].update(["scannet", "ai2thor", "scannet"])  # as a set's hash order may give them
+    assert list(summary.to_json()["scenes"]["train"].items()) == [("ai2thor", 1), ("scannet", 2)]

@@ -145,6 +145,23 @@ def test_the_cli_writes_the_rooms_and_the_builder_takes_them(tmp_path, capsys):
     assert sum(summary["counts"]["train"]["synthetic"].values()) == summary["cases"]["train"]
 
 
+def test_a_failed_write_leaves_the_previous_rooms_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    path = tmp_path / "r.jsonl"
+    write_synthetic_rooms(path, 3, seed=0)
+    before = path.read_bytes()
+
+    def failing_after_one_room(count: int, seed: int):
+        yield from list(synthetic_rooms(count, seed))[:1]
+        msg = "stopped"
+        raise RuntimeError(msg)
+
+    monkeypatch.setattr("app.data.synthetic.synthetic_rooms", failing_after_one_room)
+    with pytest.raises(RuntimeError, match="stopped"):
+        write_synthetic_rooms(path, 3, seed=1)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["r.jsonl"]
+
+
 def test_write_synthetic_rooms_counts_the_objects(tmp_path: Path):
     count = write_synthetic_rooms(tmp_path / "r.jsonl", 3, seed=0)
     assert count == sum(len(r["objects"]) for r in synthetic_rooms(3, seed=0))

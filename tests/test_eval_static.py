@@ -19,6 +19,7 @@ from app.evaluation.static import (
     DEFAULT_HDR_SAMPLES,
     GROUNDERS,
     PROPOSERS,
+    StaticEvaluation,
     ambiguity_bucket,
     case_ambiguity,
     chi2_3_cdf,
@@ -27,6 +28,7 @@ from app.evaluation.static import (
     mixture_coverage,
     no_language_nll,
     reliability_bins,
+    run_static,
     true_hypothesis_nll,
     uniform_weights_mixture,
 )
@@ -662,6 +664,24 @@ def test_cli_gt_with_baselines_writes_metrics_report_and_plots(tmp_path: Path, c
     assert not (out / "reliability.png").exists()
     rows = [json.loads(line) for line in (out / "per_case.jsonl").read_text().splitlines()]
     assert len(rows) == N_FIXTURE_CASES and {"geometric", "fixed"} <= set(rows[0])
+
+
+def test_cli_output_that_fails_half_way_leaves_the_previous_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "fixed"
+    assert run_cli("--grounder", "fixed", "--max-cases", "3", "--out", str(out)) == 0
+    before = (out / "per_case.jsonl").read_bytes()
+
+    def unwritable_first_row(options: Any) -> StaticEvaluation:
+        result = run_static(options)
+        return StaticEvaluation(result.metrics, [{"case_id": "x", "fixed": object()}, *result.per_case])
+
+    monkeypatch.setattr("app.evaluation.static.run_static", unwritable_first_row)
+    with pytest.raises(TypeError, match="not JSON serializable"):
+        run_cli("--grounder", "fixed", "--max-cases", "3", "--out", str(out))
+    assert (out / "per_case.jsonl").read_bytes() == before  # not emptied
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # nor temporary files left
 
 
 def test_cli_builtin_proposer_adds_referent_metrics(tmp_path: Path) -> None:

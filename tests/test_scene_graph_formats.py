@@ -493,6 +493,17 @@ def test_vla3d_folders_files_and_detection(tmp_path: Path) -> None:
     assert parse_scene_graph(json.dumps(payload).encode()) == load_vla3d_scene(VLA3D_DIR)
 
 
+def test_vla3d_scene_graph_json_is_read_only_without_the_region_csv(tmp_path: Path) -> None:
+    scene = tmp_path / SCENE
+    shutil.copytree(VLA3D_DIR, scene)
+    graph_json = scene / f"{SCENE}_scene_graph.json"
+    graph_json.write_text("{not json", encoding="utf-8")
+    assert load_vla3d_scene(scene) == load_vla3d_scene(VLA3D_DIR)
+    (scene / f"{SCENE}_region_result.csv").unlink()
+    with pytest.raises(InvalidSceneGraph, match="not valid JSON"):
+        load_vla3d_scene(scene)
+
+
 # --- detection, native, and the error paths of every format -------------------------------------------
 
 

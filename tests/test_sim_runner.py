@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from collections import Counter, defaultdict
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,6 +17,7 @@ import pytest
 from app.belief.fusion import VIS_LOG_MAX, VIS_LOG_MIN
 from app.cli import main as vlmap_main
 from app.client import VLMapClient
+from app.errors import InvalidSceneGraph
 from app.sim.camera import Camera
 from app.sim.metrics import (
     SUCCESS_MASS,
@@ -49,13 +51,14 @@ from app.sim.runner import (
     run_method,
     run_simulation,
 )
-from app.sim.scenes import episodes_from_cases, load_layout_scenes
+from app.sim.scenes import episodes_from_cases, load_layout_scenes, load_vla3d_scenes
 from app.sim.service import running_service
 from app.vocabulary import class_key
 from tests.fake_llm_server import FakeLLMServer, Reply
 
 CASES = Path(__file__).parent / "resources" / "sim" / "cases_scene0000_00.jsonl"
 LAYOUT = Path(__file__).parent / "resources" / "sim" / "scannet_scene0000_00.jsonl"
+VLA3D = Path(__file__).parent / "resources" / "sim" / "vla3d"
 
 # --- metrics --------------------------------------------------------------------------------------------
 
@@ -233,6 +236,18 @@ def test_max_target_size_keeps_the_episodes_of_small_targets_in_the_same_seeded_
     expected = [raw[k].episode_id for k in np.random.default_rng(3).permutation(len(raw))]
     assert [e.episode_id for e in load_episodes([CASES, LAYOUT], seed=3, max_target_size=limit)] == expected
     assert sorted(expected) == sorted(small)
+
+
+def test_an_unreadable_vla3d_scene_of_a_folder_is_skipped_but_one_named_is_an_error(tmp_path: Path) -> None:
+    shutil.copytree(VLA3D, tmp_path / "scene0010_01")
+    broken = tmp_path / "scene0011_00"
+    broken.mkdir()
+    (broken / "scene0011_00_object_result.csv").write_text("object_id\n", encoding="utf-8")  # columns missing
+    assert {e.scene_id for e in load_episodes(tmp_path)} == {"scene0010_01"}
+    (scene,) = load_vla3d_scenes(tmp_path)
+    assert scene.scene_id == "scene0010_01"
+    with pytest.raises(InvalidSceneGraph):
+        load_vla3d_scenes(tmp_path, ["scene0011_00"])
 
 
 def test_perception_models_share_the_trajectory_not_the_labels() -> None:
@@ -503,6 +518,17 @@ def test_sim_command_end_to_end(service_url: str, tmp_path: Path, capsys: pytest
     assert "Fixed (anchor centroid, 0.1 m)" in table
     for name in ("information_gain.png", "target_mass.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_measure_rates_shows_a_progress_bar_unless_told_not_to(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["sim", "--scenes", str(CASES), "--episodes", "1", "--steps", "4", "--measure-rates"]
+    assert vlmap_main([*args, "--out", str(tmp_path)]) == 0
+    assert "episodes: 100%" in capsys.readouterr().err
+    assert vlmap_main([*args, "--out", str(tmp_path), "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""
+    assert json.loads((tmp_path / "perception_rates.json").read_text())["episodes"] == 1
 
 
 def test_sim_command_refuses_what_it_cannot_run(

@@ -104,9 +104,26 @@ def test_an_unreadable_scene_is_skipped_and_a_missing_folder_refused(tmp_path):
         statement_files(tmp_path / "nowhere")
 
 
+def test_an_unreadable_scene_graph_json_beside_the_region_csv_is_not_read(tmp_path):
+    scene = tmp_path / "scene0010_01"
+    _with_statements(scene, json.loads((EXAMPLE / STATEMENTS).read_text()))
+    (scene / "scene0010_01_scene_graph.json").write_text("{not json")  # only the region CSV's fallback
+    report = ConversionReport()
+    assert len(list(convert_vla3d(scene, report))) == 2
+    assert report.skipped == Counter()
+
+
 def test_cli_writes_the_cases(tmp_path, capsys):
     out = tmp_path / "vla3d.jsonl"
     assert main(["data", "vla3d", str(EXAMPLE), "--out", str(out)]) == 0
     cases = list(read_cases(out))
     assert [c.hypotheses[0].relation for c in cases] == [Relation.ON, Relation.NEAR]
     assert "wrote 2 cases" in capsys.readouterr().out
+
+
+def test_cli_shows_a_progress_bar_unless_told_not_to(tmp_path, capsys):
+    out = tmp_path / "vla3d.jsonl"
+    assert main(["data", "vla3d", str(EXAMPLE), "--out", str(out)]) == 0
+    assert "scenes: 100%" in capsys.readouterr().err
+    assert main(["data", "vla3d", str(EXAMPLE), "--out", str(out), "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""

@@ -35,6 +35,7 @@ import json
 import zlib
 from collections import Counter, defaultdict
 from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -73,6 +74,7 @@ from app.data.layouts import (
 from app.data.relocate import relocated
 from app.data.templates import render_sr3d, render_utterance, render_vla3d
 from app.errors import InvalidInput
+from app.files import atomic_write
 from app.grounding.box_relations import TrueReading
 from app.grounding.relations import Relation
 from app.scene_graph.model import Region, SceneGraph, SceneObject
@@ -172,6 +174,12 @@ class BuildConfig:
     # Share of the train targets moved to another resting place of their region first (`app.data.relocate`).
     relocate_fraction: float = 0.0
 
+    def __post_init__(self) -> None:
+        # Checked here, not where the fractions are first used: `write_build` would by then have begun to
+        # replace the previous build's files.
+        for name in ("unseen_fraction", "val_seen_fraction", "calib_fraction", "relocate_fraction"):
+            _check_fraction(getattr(self, name), name)
+
     def shift(self, split: str) -> Shift | None:
         """How the split's shifted maps are drawn; None for the canonical frame only."""
         base = {"train": TRAIN_SHIFT, "calib": CALIB_SHIFT}.get(split)
@@ -240,7 +248,7 @@ class BuildSummary:
             "ambiguity_histogram": {
                 s: {str(k): v for k, v in sorted(c.items())} for s, c in self.ambiguity.items()
             },
-            "scenes": {s: dict(c) for s, c in self.scenes.items()},
+            "scenes": {s: dict(sorted(c.items())) for s, c in self.scenes.items()},
             "maps": {s: dict(c) for s, c in self.maps.items()},
             "notes": dict(sorted(self.notes.items())),
         }
@@ -588,23 +596,25 @@ def build_cases(
 def write_build(
     scenes: Sequence[LayoutScene], out_dir: str | Path, config: BuildConfig, progress: bool = False
 ) -> BuildSummary:
-    """Write train/val_seen/val_unseen/calib JSONL and summary.json into `out_dir`; returns the summary."""
+    """Write train/val_seen/val_unseen/calib JSONL and summary.json into `out_dir`; returns the summary.
+
+    The previous build's files are replaced only once every case is written (`app.files.atomic_write`): a
+    build that fails or is stopped leaves them as they were.
+    """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     summary = BuildSummary()
     seen_scenes: dict[str, set[tuple[str, str]]] = {s: set() for s in SPLITS}
-    handles = {s: (out / f"{s}.jsonl").open("w", encoding="utf-8") for s in SPLITS}
-    try:
+    with ExitStack() as files:
+        # Entered first so that it is replaced last, after the split files it describes.
+        summary_file = files.enter_context(atomic_write(out / "summary.json"))
+        handles = {s: files.enter_context(atomic_write(out / f"{s}.jsonl")) for s in SPLITS}
         for split, case in build_cases(scenes, config, progress, summary.notes, summary.maps):
             handles[split].write(case.model_dump_json(exclude_none=True))
             handles[split].write("\n")
             summary.add(split, case)
             seen_scenes[split].add((case.meta["source"], case.meta["scene_id"]))
-    finally:
-        for fh in handles.values():
-            fh.close()
-    for split, pairs in seen_scenes.items():
-        summary.scenes[split].update(source for source, _ in pairs)
-    payload = {"config": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(config).items()}}
-    (out / "summary.json").write_text(json.dumps({**payload, **summary.to_json()}, indent=2) + "\n")
+        for split, pairs in seen_scenes.items():
+            summary.scenes[split].update(source for source, _ in pairs)
+        payload = {"config": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(config).items()}}
+        summary_file.write(json.dumps({**payload, **summary.to_json()}, indent=2) + "\n")
     return summary

@@ -16,6 +16,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from app.files import atomic_write
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, Vec3
 
@@ -69,11 +70,9 @@ def read_cases(path: str | Path) -> Iterator[GroundingCase]:
 
 
 def write_cases(path: str | Path, cases: Iterable[GroundingCase]) -> int:
-    """Write cases as JSONL; returns how many were written."""
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    """Write cases as JSONL, replacing `path` once complete; returns how many were written."""
     count = 0
-    with out.open("w", encoding="utf-8") as fh:
+    with atomic_write(path) as fh:
         for case in cases:
             fh.write(case.model_dump_json(exclude_none=True))
             fh.write("\n")

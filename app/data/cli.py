@@ -90,6 +90,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     )
     vla3d.add_argument("folder", type=Path, metavar="DIR")
     vla3d.add_argument("--out", type=Path, required=True, help="cases file to write (JSONL)")
+    vla3d.add_argument("--no-progress", action="store_true", help="no progress bar")
     vla3d.set_defaults(func=vla3d_command)
 
     referring = sub.add_parser(
@@ -101,6 +102,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) 
     referring.add_argument("--expressions", type=Path, required=True, help="expressions (JSONL)")
     referring.add_argument("--scenes", type=Path, required=True, help="the scans' boxes (JSONL)")
     referring.add_argument("--out", type=Path, required=True, help="cases file to write (JSONL)")
+    referring.add_argument("--no-progress", action="store_true", help="no progress bar")
     referring.set_defaults(func=referring_command)
 
 
@@ -109,15 +111,13 @@ def build_command(args: argparse.Namespace) -> int:
 
     from app.data.build import SPLITS, BuildConfig, read_ai2thor, read_scannet, read_synthetic, write_build
     from app.data.conventions import Convention
+    from app.errors import InvalidInput
 
     if args.scannet is None and args.ai2thor is None and args.synthetic is None:
         msg = "give --scannet, --ai2thor and/or --synthetic"
         raise SystemExit(msg)
     if args.augment < 0 or args.max_cases_per_scene < 1 or args.cases_per_target < 1:
         msg = "--augment must be >= 0, --max-cases-per-scene and --cases-per-target >= 1"
-        raise SystemExit(msg)
-    if not 0.0 <= args.relocate_fraction <= 1.0:
-        msg = "--relocate-fraction must lie in [0, 1]"
         raise SystemExit(msg)
     if args.house_fraction < 0:
         msg = "--house-fraction must be >= 0"
@@ -128,30 +128,35 @@ def build_command(args: argparse.Namespace) -> int:
         msg = f"--conventions takes a comma-separated subset of {', '.join(sorted(known))}"
         raise SystemExit(msg)
     start = time.perf_counter()
-    scenes = []
-    if args.scannet is not None:
-        scenes += read_scannet(args.scannet)
-    if args.ai2thor is not None:
-        scenes += read_ai2thor(args.ai2thor)
-    if args.synthetic is not None:
-        scenes += read_synthetic(args.synthetic)
-    config = BuildConfig(
-        seed=args.seed,
-        augment=args.augment,
-        max_cases_per_scene=args.max_cases_per_scene,
-        cases_per_target=args.cases_per_target,
-        unseen_fraction=args.unseen_fraction,
-        val_seen_fraction=args.val_seen_fraction,
-        calib_fraction=args.calib_fraction,
-        conventions=tuple(Convention(n) for n in dict.fromkeys(names)),
-        house_fraction=args.house_fraction,
-        continuous_yaw=not args.no_continuous_yaw,
-        box_noise=not args.no_box_noise,
-        raw_labels=not args.no_raw_labels,
-        all_targets=not args.small_targets_only,
-        relocate_fraction=args.relocate_fraction,
-    )
-    summary = write_build(scenes, args.out, config, progress=not args.no_progress)
+    try:
+        # Before the layouts are read, so that a mistyped fraction fails at once.
+        config = BuildConfig(
+            seed=args.seed,
+            augment=args.augment,
+            max_cases_per_scene=args.max_cases_per_scene,
+            cases_per_target=args.cases_per_target,
+            unseen_fraction=args.unseen_fraction,
+            val_seen_fraction=args.val_seen_fraction,
+            calib_fraction=args.calib_fraction,
+            conventions=tuple(Convention(n) for n in dict.fromkeys(names)),
+            house_fraction=args.house_fraction,
+            continuous_yaw=not args.no_continuous_yaw,
+            box_noise=not args.no_box_noise,
+            raw_labels=not args.no_raw_labels,
+            all_targets=not args.small_targets_only,
+            relocate_fraction=args.relocate_fraction,
+        )
+        scenes = []
+        if args.scannet is not None:
+            scenes += read_scannet(args.scannet)
+        if args.ai2thor is not None:
+            scenes += read_ai2thor(args.ai2thor)
+        if args.synthetic is not None:
+            scenes += read_synthetic(args.synthetic)
+        summary = write_build(scenes, args.out, config, progress=not args.no_progress)
+    except InvalidInput as exc:  # a bad option or layout file: a message, not a traceback
+        msg = f"vlmap data build: {exc}"
+        raise SystemExit(msg) from exc
     elapsed = time.perf_counter() - start
     print(
         f"wrote {len(scenes)} scenes' cases to {args.out}/ ("
@@ -186,7 +191,7 @@ def vla3d_command(args: argparse.Namespace) -> int:
     from app.data.vla3d_statements import write_vla3d_cases
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    report = write_vla3d_cases(args.folder, args.out)
+    report = write_vla3d_cases(args.folder, args.out, progress=not args.no_progress)
     print(f"wrote {report.cases} cases to {args.out}")
     print(json.dumps(report.to_json(), indent=2))
     return 0
@@ -197,7 +202,10 @@ def referring_command(args: argparse.Namespace) -> int:
     from app.data.referring import ReferringReport, referring_cases, scene_objects
 
     report = ReferringReport()
-    written = write_cases(args.out, referring_cases(args.expressions, scene_objects(args.scenes), report))
+    cases = referring_cases(
+        args.expressions, scene_objects(args.scenes), report, progress=not args.no_progress
+    )
+    written = write_cases(args.out, cases)
     print(f"wrote {written} cases of {report.expressions} expressions to {args.out}")
     if report.skipped:
         print("skipped: " + json.dumps(dict(sorted(report.skipped.items()))))

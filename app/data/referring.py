@@ -55,12 +55,19 @@ def scene_objects(path: Path) -> dict[str, list[SceneObject]]:
 
 
 def referring_cases(
-    expressions: Path, scenes: dict[str, list[SceneObject]], report: ReferringReport | None = None
+    expressions: Path,
+    scenes: dict[str, list[SceneObject]],
+    report: ReferringReport | None = None,
+    progress: bool = False,
 ) -> Iterator[GroundingCase]:
-    """One case per expression, in file order (case ids "<source>/<scene>/<target>/<line>")."""
+    """One case per expression, in file order (case ids "<source>/<scene>/<target>/<line>"); `progress`
+    shows a bar of the lines read."""
+    from tqdm import tqdm
+
     report = report if report is not None else ReferringReport()
     with Path(expressions).open(encoding="utf-8") as fh:
-        for number, line in enumerate(fh, start=1):
+        lines = tqdm(fh, desc="expressions", unit="line", disable=not progress)
+        for number, line in enumerate(lines, start=1):
             if not line.strip():
                 continue
             raw: dict[str, Any] = json.loads(line)

@@ -26,6 +26,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from app.files import atomic_write
+
 Range = tuple[float, float]
 Placement = Literal["wall", "free", "mounted", "around"]
 
@@ -585,11 +587,9 @@ def synthetic_rooms(count: int, seed: int) -> Iterator[dict[str, Any]]:
 
 
 def write_synthetic_rooms(path: str | Path, count: int, seed: int) -> int:
-    """Write `count` rooms (JSONL); returns how many objects they hold."""
+    """Write `count` rooms (JSONL, replacing `path` once complete); returns how many objects they hold."""
     objects = 0
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with out.open("w", encoding="utf-8") as fh:
+    with atomic_write(path) as fh:
         for room in synthetic_rooms(count, seed):
             objects += len(room["objects"])
             fh.write(json.dumps(room, separators=(",", ":")) + "\n")

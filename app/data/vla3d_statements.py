@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from app.data.cases import CaseHypothesis, CaseTarget, GroundingCase
+from app.data.cases import CaseHypothesis, CaseTarget, GroundingCase, write_cases
 from app.errors import InvalidInput, InvalidSceneGraph
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph
@@ -145,13 +145,18 @@ def convert_statement(
     )
 
 
-def convert_vla3d(folder: str | Path, report: ConversionReport | None = None) -> Iterator[GroundingCase]:
-    """Cases of every statements file under `folder`; skips are counted in `report`.
+def convert_vla3d(
+    folder: str | Path, report: ConversionReport | None = None, progress: bool = False
+) -> Iterator[GroundingCase]:
+    """Cases of every statements file under `folder`; skips are counted in `report`; `progress` shows a
+    bar of the scenes converted.
 
     A scene whose files cannot be read is skipped whole ("scene_unreadable"), its statements uncounted.
     """
+    from tqdm import tqdm
+
     report = ConversionReport() if report is None else report
-    for path in statement_files(folder):
+    for path in tqdm(statement_files(folder), desc="scenes", unit="scene", disable=not progress):
         scene_name = path.name.removesuffix(STATEMENTS_FILE_SUFFIX)
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
@@ -178,13 +183,9 @@ def convert_vla3d(folder: str | Path, report: ConversionReport | None = None) ->
             yield result
 
 
-def write_vla3d_cases(folder: str | Path, out_file: str | Path) -> ConversionReport:
-    """Convert every statement under `folder` into grounding cases written to `out_file` (JSONL)."""
+def write_vla3d_cases(folder: str | Path, out_file: str | Path, progress: bool = False) -> ConversionReport:
+    """Convert every statement under `folder` into grounding cases written to `out_file` (JSONL, replaced
+    once complete); `progress` shows a bar of the scenes converted."""
     report = ConversionReport()
-    out = Path(out_file)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with out.open("w", encoding="utf-8") as fh:
-        for case in convert_vla3d(folder, report):
-            fh.write(case.model_dump_json(exclude_none=True))
-            fh.write("\n")
+    write_cases(out_file, convert_vla3d(folder, report, progress))
     return report

@@ -58,6 +58,7 @@ def static_command(args: argparse.Namespace) -> int:
     from app.errors import VLMapError
     from app.evaluation.report import format_report, write_plots
     from app.evaluation.static import LLMOptions, StaticOptions, run_static
+    from app.files import atomic_write, write_text_atomic
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     options = StaticOptions(
@@ -80,13 +81,12 @@ def static_command(args: argparse.Namespace) -> int:
         raise SystemExit(msg) from exc
 
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "metrics.json").write_text(json.dumps(result.metrics, indent=2) + "\n", encoding="utf-8")
-    with (out / "per_case.jsonl").open("w", encoding="utf-8") as fh:
+    write_text_atomic(out / "metrics.json", json.dumps(result.metrics, indent=2) + "\n")
+    with atomic_write(out / "per_case.jsonl") as fh:
         for row in result.per_case:
             fh.write(json.dumps(row) + "\n")
     report = format_report(result.metrics)
-    (out / "report.md").write_text(report, encoding="utf-8")
+    write_text_atomic(out / "report.md", report)
     plots = write_plots(result.metrics, out, result.per_case)
     print(report)
     print(f"wrote {out}/metrics.json, report.md, per_case.jsonl, " + ", ".join(p.name for p in plots))

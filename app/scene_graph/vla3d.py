@@ -240,7 +240,9 @@ def load_vla3d_scene(
     region_path = scene_dir / f"{scene_name}{REGION_FILE_SUFFIX}"
     graph_path = scene_dir / f"{scene_name}{SCENE_GRAPH_FILE_SUFFIX}"
     scene_graph = None
-    if graph_path.is_file():
+    # Only the fallback for the region CSV's boxes: with that CSV at hand the JSON is not read, so that an
+    # unreadable one costs nothing.
+    if not region_path.is_file() and graph_path.is_file():
         try:
             scene_graph = json.loads(_read_text(graph_path))
         except (ValueError, RecursionError) as exc:

@@ -218,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
                 msg += f" with a target of at most {args.max_target_size:g} m"
             raise SimError(msg)
         if args.measure_rates:
-            return measure_rates(episodes, args.episodes, config, args.out)
+            return measure_rates(episodes, args.episodes, config, args.out, progress=not args.no_progress)
         if needs_utterance(methods) and not any(e.utterance for e in episodes):
             msg = (
                 f"{scenes} carries no utterances, which {[m for m in methods if METHOD_OPTIONS[m]]} "
@@ -256,22 +256,29 @@ def run(args: argparse.Namespace) -> int:
         return 2
 
 
-def measure_rates(episodes: Sequence[Episode], n_episodes: int, config: SimConfig, out: Path) -> int:
+def measure_rates(
+    episodes: Sequence[Episode], n_episodes: int, config: SimConfig, out: Path, progress: bool = False
+) -> int:
     """`--measure-rates`: the rates the labels of `n_episodes` fit episodes' frames realise (no service);
-    printed and written to out/perception_rates.json."""
+    printed and written to out/perception_rates.json. `progress` shows a bar of the episodes measured."""
     from collections import Counter
 
+    from tqdm import tqdm
+
+    from app.files import write_text_atomic
     from app.sim.perception import RateCounts
     from app.sim.runner import prepared_episodes
 
     skips: Counter[str] = Counter()
     rates, seen, run = RateCounts(), 0, 0
-    for prepared in prepared_episodes(episodes, config, skips):
-        rates.add(prepared.rates)
-        seen += prepared.target_seen
-        run += 1
-        if run >= n_episodes:
-            break
+    with tqdm(total=n_episodes, desc="episodes", unit="episode", disable=not progress) as bar:
+        for prepared in prepared_episodes(episodes, config, skips):
+            rates.add(prepared.rates)
+            seen += prepared.target_seen
+            run += 1
+            bar.update()
+            if run >= n_episodes:
+                break
     document = {
         "perception": config.perception,
         "episodes": run,
@@ -279,8 +286,7 @@ def measure_rates(episodes: Sequence[Episode], n_episodes: int, config: SimConfi
         "skipped": dict(sorted(skips.items())),
         "realised": rates.summary(),
     }
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "perception_rates.json").write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
+    write_text_atomic(out / "perception_rates.json", json.dumps(document, indent=2) + "\n")
     print(json.dumps(document, indent=2))
     return 0
 

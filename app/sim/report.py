@@ -17,6 +17,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from app.files import atomic_write, write_text_atomic
 from app.sim.metrics import SplitMetrics, aggregate
 from app.sim.runner import SimResult
 
@@ -222,16 +223,15 @@ def write_report(
     """Write metrics.json, table.md, episodes.jsonl, information_gain.png and target_mass.png into
     `out_dir`; returns the table."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     methods = list(result.methods)
     metrics = aggregate(result.outcomes, methods, success_mass)
     document = metrics_document(result, metrics, success_mass, command)
-    (out / "metrics.json").write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
-    with (out / "episodes.jsonl").open("w", encoding="utf-8") as fh:
+    write_text_atomic(out / "metrics.json", json.dumps(document, indent=2) + "\n")
+    with atomic_write(out / "episodes.jsonl") as fh:
         for record in result.records:
             fh.write(json.dumps(_clean(record.to_dict())) + "\n")
     table = render_table(metrics, methods)
-    (out / "table.md").write_text(_table_page(table, document), encoding="utf-8")
+    write_text_atomic(out / "table.md", _table_page(table, document))
     plot_curves(metrics, methods, "ig", out / "information_gain.png")
     plot_curves(metrics, methods, "mass", out / "target_mass.png")
     return table

@@ -15,6 +15,7 @@ utterance when one comes with it. Sources:
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +23,7 @@ from typing import Any
 
 from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_MAX_VOXELS, DEFAULT_VOXEL_SIZE_M, VoxelGrid
 from app.data.cases import GroundingCase, read_cases
-from app.errors import InvalidInput, NotFound
+from app.errors import InvalidInput, InvalidSceneGraph, NotFound
 from app.scene_graph.model import SceneGraph, SceneObject
 from app.sim.world import RobotBody, SemanticVoxelWorld
 
@@ -32,6 +33,7 @@ DEFAULT_TARGET_SIZE = (0.2, 0.2, 0.2)
 #: the case builder's, VLA-3D's). A case's `meta["language"]` ("human" or "templated") overrides this.
 HUMAN_SOURCES = frozenset({"nr3d", "scanrefer"})
 LANGUAGES = ("human", "templated")
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -144,14 +146,25 @@ def load_layout_scenes(path: str | Path, scene_ids: Iterable[str] | None = None)
 
 
 def load_vla3d_scenes(folder: str | Path, scene_names: Iterable[str] | None = None) -> list[SimScene]:
-    """VLA-3D scenes of a folder (all it holds, or those named), targets chosen as for the grounding cases."""
+    """VLA-3D scenes of a folder (all it holds, or those named), targets chosen as for the grounding cases.
+
+    Of a whole folder, a scene whose files cannot be read is skipped with a warning, as
+    `app.data.vla3d_statements.convert_vla3d` skips it, rather than ending the run; a scene named that
+    cannot be read is an error.
+    """
     from app.data.build import is_target_candidate
     from app.scene_graph.vla3d import list_vla3d_scenes, load_vla3d_scene
 
     names = list_vla3d_scenes(folder) if scene_names is None else list(scene_names)
     scenes = []
     for name in names:
-        graph = load_vla3d_scene(folder, name)
+        try:
+            graph = load_vla3d_scene(folder, name)
+        except InvalidSceneGraph as exc:
+            if scene_names is not None:
+                raise
+            log.warning("skipping VLA-3D scene %s: %s", name, exc)
+            continue
         candidates = tuple(o.id for o in graph.objects if is_target_candidate(o.label, o.size))
         scenes.append(SimScene(source="vla3d", scene_id=name, graph=graph, candidate_target_ids=candidates))
     return scenes
