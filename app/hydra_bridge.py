@@ -150,7 +150,8 @@ class SendPolicy:
 
     min_interval_s: float
     max_backoff_s: float
-    #: The last graph the service acknowledged, and the last one it refused.
+    #: The last graph the service acknowledged (None before the first, or once a PUT failed and what the
+    #: service holds is unknown), and the last one it refused.
     acknowledged: SceneGraph | None = None
     refused: SceneGraph | None = None
     pending: Snapshot | None = None
@@ -185,6 +186,9 @@ class SendPolicy:
 
     def failed(self, now: float) -> float:
         """A PUT failed for a reason that may pass: the delay (seconds) before the next try."""
+        # A timeout or a 5xx may come after the service applied the graph: what it holds is no longer
+        # known, so the next graph is sent even if it equals the last acknowledged one.
+        self.acknowledged = None
         delay = max(self.min_interval_s, min(self.max_backoff_s, FIRST_BACKOFF_S * 2.0**self.failures))
         self.failures += 1
         self.not_before = now + delay

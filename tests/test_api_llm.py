@@ -59,3 +59,23 @@ def test_llm_parts_are_absent_without_an_endpoint(client: TestClient) -> None:
     response = client.post("/v1/ground", json=body)
     assert response.status_code == 422
     assert response.json()["field"] == "options.proposer"
+
+
+def test_hostile_llm_replies_fall_back_and_are_counted() -> None:
+    scene = load_resource_json("scenes/two_rooms.json")
+    body = {"scene_graph": scene, "utterance": "my backpack is on the table", "options": {"proposer": "llm"}}
+    huge_confidence = (  # a JSON integer past the float range
+        '{"hypotheses": [{"utterance": "there is a backpack on the table", "referred_object_id": ["t2"], '
+        f'"region_id": 1, "confidence": {10**400}}}]}}'
+    )
+    with FakeLLMServer() as server, TestClient(create_app(_settings(server))) as client:
+        for reply in (Reply(content=huge_confidence), Reply(content="[" * 3000)):
+            server.script(reply)
+            response = client.post("/v1/ground", json=body)
+            assert response.status_code == 200
+            anchored = {a for h in response.json()["hypotheses"] for a in h["anchor_ids"]}
+            assert {"t1", "t2"} <= anchored  # the built-in answer
+        metrics = client.get("/metrics").text
+    assert 'vlmap_llm_fallbacks_total{reason="no_valid_hypotheses"} 1.0' in metrics
+    assert 'vlmap_llm_fallbacks_total{reason="malformed_reply"} 1.0' in metrics
+    assert len(server.requests) == 2  # answered calls are not retried

@@ -7,13 +7,16 @@ from __future__ import annotations
 import asyncio
 import json
 import threading
+import time
 from typing import Any
 
+import numpy as np
+import pytest
 import websockets
 
 from app.client import VLMapClient
 from app.foxglove.live import LiveServer
-from app.foxglove.messages import Topics
+from app.foxglove.messages import Topics, _quaternion
 from tests.conftest import model_free_settings
 from tests.test_events import served
 from tests.test_recording import LABELS, SCENE
@@ -65,6 +68,27 @@ def test_the_live_server_advertises_a_sessions_topics_and_sends_its_belief_to_a_
             live.stop()
 
 
+def test_a_viewer_that_comes_after_every_other_left_gets_the_last_state() -> None:
+    with served(model_free_settings()) as service, VLMapClient(service.url) as client:
+        session = client.create_session("r3", SCENE, target_label="backpack", label_map=LABELS)
+        client.send_utterance(session["id"], "my backpack is on the table")
+        live = LiveServer(client, session_id=session["id"], port=0)
+        follower = threading.Thread(target=live.run, daemon=True)
+        follower.start()
+        try:
+            topics = Topics(session["id"])
+            _, _, first = asyncio.run(_advertised(live.port, topics))
+            # The first viewer has gone (its disconnection unsubscribes it) and the session is unchanged.
+            deadline = time.monotonic() + WAIT_S
+            while live.subscriptions.watched(session["id"]):
+                assert time.monotonic() < deadline, "the first viewer's subscription outlived it"
+                time.sleep(0.05)
+            _, _, second = asyncio.run(_advertised(live.port, topics))
+            assert second == first  # the same belief message
+        finally:
+            live.stop()
+
+
 def test_without_a_subscriber_nothing_is_fetched() -> None:
     with served(model_free_settings()) as service, VLMapClient(service.url) as client:
         session = client.create_session("r2", SCENE, target_label="backpack", label_map=LABELS)
@@ -76,3 +100,28 @@ def test_without_a_subscriber_nothing_is_fetched() -> None:
             assert shown.converter is None and shown.version is None
         finally:
             live.stop()
+
+
+def _rotation(quaternion: tuple[float, float, float, float]) -> np.ndarray:
+    x, y, z, w = quaternion
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+@pytest.mark.parametrize(
+    "axis", [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 2, 3), (-3, 1, 2), (1, -1, 0), (2, 1, -2), (1, 1, 1)]
+)
+def test_an_ellipsoids_orientation_is_its_rotation_even_at_a_half_turn(axis: tuple[int, int, int]) -> None:
+    n = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    for angle in (np.pi, np.pi - 1e-9, 2.0, 0.3, 0.0):
+        # Rodrigues: the rotation by `angle` about n.
+        k = np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
+        rotation = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+        quaternion = _quaternion(rotation)
+        assert np.linalg.norm(quaternion) == pytest.approx(1.0, abs=1e-12)
+        np.testing.assert_allclose(_rotation(quaternion), rotation, atol=1e-9)

@@ -300,6 +300,19 @@ def test_the_policy_backs_off_exponentially_capped_and_drops_a_refused_graph() -
     assert policy.offer(snapshot(SECOND)) is not None and policy.failures == 0
 
 
+def test_after_a_failed_put_the_last_acknowledged_graph_is_sent_again() -> None:
+    policy = SendPolicy(min_interval_s=0.1, max_backoff_s=4.0)
+    first, second = snapshot(FIRST), snapshot(SECOND)
+    policy.offer(first)
+    policy.sent(first, 0.0)
+    policy.offer(second)
+    policy.failed(1.0)  # a timeout or a 5xx: the service may hold the second graph all the same
+    back = snapshot(FIRST)
+    assert policy.offer(back) is not None and policy.due(2.0) is back
+    policy.sent(back, 2.0)
+    assert policy.offer(snapshot(FIRST)) is None  # acknowledged: known again
+
+
 def test_a_change_is_judged_by_id_on_objects_and_regions() -> None:
     first = expected(FIRST)
     reordered = first.model_copy(update={"objects": first.objects[::-1], "frame_id": "odom"})

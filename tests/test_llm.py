@@ -18,7 +18,13 @@ from app.grounding.hypotheses import Hypothesis
 from app.grounding.lexical import LexicalProposer
 from app.grounding.relations import Relation
 from app.llm.baselines import LLMEndToEndGrounder, ScaffoldedLLMGrounder, repair_covariance
-from app.llm.client import ChatClient, EndpointUnavailable, LLMEndpoint, extract_json_object
+from app.llm.client import (
+    ChatClient,
+    EndpointUnavailable,
+    LLMEndpoint,
+    extract_json_object,
+    strip_thinking,
+)
 from app.llm.prompts import example_exchange
 from app.llm.proposer import LLMProposer, check_hypothesis, read_hypotheses, softmax_weights
 from app.scene_graph.model import SceneGraph
@@ -109,6 +115,9 @@ ON_COFFEE_TABLE = hyp("there is a backpack on the coffee table", ["21"], 0.3, 1)
         ('{"a": 1', None),
         ("no json here", None),
         ("[1, 2, 3]", None),
+        ("[" * 3000, None),  # nested deeper than the decoder recurses
+        ('{"a": ' * 3000, None),
+        ("<think>" * 28_571, None),  # 200k characters of unclosed tags
     ],
 )
 def test_extract_json_object(text: str, expected: dict[str, Any] | None) -> None:
@@ -117,6 +126,24 @@ def test_extract_json_object(text: str, expected: dict[str, Any] | None) -> None
             extract_json_object(text)
     else:
         assert extract_json_object(text) == expected
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("<think>a</think>b", "b"),
+        ("a<think>b</think>c<think>d</think>e", "ace"),
+        ("<think><think>a</think>b</think>c", "b</think>c"),  # to the first closing tag
+        ("<think></think>", ""),
+        ("a</think>b<think>c", "a</think>b<think>c"),  # nothing complete
+        ("a<think>b</think>c<think>d", "ac<think>d"),  # the unclosed rest is kept
+        ("<think>" * 28_571, "<think>" * 28_571),
+        ("<think>x</think>" + "<think>" * 28_571, "<think>" * 28_571),
+        ("a<think>b</think>" * 12_500, "a" * 12_500),
+    ],
+)
+def test_strip_thinking_removes_complete_blocks_only(text: str, expected: str) -> None:
+    assert strip_thinking(text) == expected
 
 
 # --- the proposer -----------------------------------------------------------------------------------
@@ -186,6 +213,10 @@ def test_fenced_json_in_prose_is_extracted(
         Reply(content='{"hypotheses": "on the table"}'),
         Reply(body="this is not a chat completion"),
         Reply(body='{"choices": []}'),
+        Reply(content="[" * 3000),  # nested deeper than the decoder recurses
+        Reply(body='{"choices": ' + "[" * 3000),
+        Reply(body=json.dumps({"choices": [{"message": {"content": [{"type": "text", "text": 5}]}}]})),
+        Reply(body="not gzip", headers={"Content-Encoding": "gzip"}),
     ],
 )
 def test_malformed_reply_falls_back(
@@ -269,7 +300,15 @@ def test_check_hypothesis_relations(
 
 
 @pytest.mark.parametrize(
-    ("confidence", "kept"), [(1.7, 1.0), (-0.2, 0.0), ("high", None), (float("nan"), None)]
+    ("confidence", "kept"),
+    [
+        (1.7, 1.0),
+        (-0.2, 0.0),
+        ("high", None),
+        (float("nan"), None),
+        pytest.param(10**400, None, id="int-past-float-range"),
+        pytest.param(-(10**400), None, id="negative-int-past-float-range"),
+    ],
 )
 def test_check_hypothesis_confidence(scene: SceneGraph, confidence: Any, kept: float | None) -> None:
     checked = check_hypothesis(hyp("there is a mug on the counter top", ["5"], confidence), scene)
@@ -363,6 +402,18 @@ def test_rate_limit_honours_retry_after(server: FakeLLMServer) -> None:
     with make_client(server.base_url, sleeps) as chat:
         assert chat.complete_json([{"role": "user", "content": "hi"}]) == {"ok": True}
     assert sleeps == [0.25]
+
+
+@pytest.mark.parametrize("retry_after", ["nan", "inf", "-inf"])
+def test_a_retry_after_that_is_no_delay_keeps_the_backoff(server: FakeLLMServer, retry_after: str) -> None:
+    server.script(
+        *[Reply(status=429, body="{}", headers={"Retry-After": retry_after})] * 2,
+        Reply(content='{"ok": true}'),
+    )
+    sleeps = Sleeps()
+    with make_client(server.base_url, sleeps) as chat:
+        assert chat.complete_json([{"role": "user", "content": "hi"}]) == {"ok": True}
+    assert sleeps == [0.5, 1.0]
 
 
 def test_refused_call_is_not_retried(
@@ -461,6 +512,7 @@ def test_scaffolded_llm_repairs_covariances(
         '{"mu": [1, 2, 3], "sigma": [[1, 0], [0, 1]]}',
         '{"mu": [1, 2, 3], "sigma": "tight"}',
         '{"mu": [1, 2, 3]}',
+        '{"mu": [' + str(10**400) + ', 2, 3], "sigma": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}',  # past floats
     ],
 )
 def test_scaffolded_llm_rejects_unusable_gaussians(
@@ -501,6 +553,14 @@ def test_llm_e2e_mixture_weights_normalised(
     assert f'"{BACKPACK}"' in request.body["messages"][-1]["content"]
 
 
+def test_llm_e2e_weights_near_the_float_maximum_are_normalised(
+    server: FakeLLMServer, client: ChatClient, scene: SceneGraph
+) -> None:
+    server.script(e2e_reply([1e308, 1e308, 5e307], [[1.0, 2.0, 0.5], [3.0, 2.0, 0.5], [5.0, 2.0, 0.5]]))
+    mixture = LLMEndToEndGrounder(client).ground_mixture(scene, BACKPACK)
+    np.testing.assert_allclose(mixture.weights, [0.4, 0.4, 0.2])
+
+
 def test_llm_e2e_keeps_the_heaviest_components(
     server: FakeLLMServer, client: ChatClient, scene: SceneGraph
 ) -> None:
@@ -513,7 +573,9 @@ def test_llm_e2e_keeps_the_heaviest_components(
     np.testing.assert_allclose(mixture.means[:, 0], [1, 3, 4, 5, 2])
 
 
-@pytest.mark.parametrize("weights", [[0.5, -0.1], [0.0, 0.0], [0.5, None]])
+@pytest.mark.parametrize(
+    "weights", [[0.5, -0.1], [0.0, 0.0], [0.5, None], pytest.param([10**400, 1.0], id="int-past-float-range")]
+)
 def test_llm_e2e_rejects_bad_weights(
     server: FakeLLMServer, client: ChatClient, scene: SceneGraph, weights: list[Any]
 ) -> None:

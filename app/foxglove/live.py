@@ -41,11 +41,12 @@ class _Shown:
 
 class _Subscriptions(ServerListener):
     """The SDK's `ServerListener`: counts viewers' subscriptions per session and asks for a first
-    publication when a session gets its first one."""
+    publication when a session gets its first one (again after every viewer left: `take_first`)."""
 
     def __init__(self, wake: queue.Queue[str | None]) -> None:
         self._lock = threading.Lock()
         self._counts: Counter[str] = Counter()
+        self._first: set[str] = set()  # sessions whose subscriptions went from none to one since published
         self._wake = wake
 
     @staticmethod
@@ -59,6 +60,8 @@ class _Subscriptions(ServerListener):
             with self._lock:
                 self._counts[session] += 1
                 first = self._counts[session] == 1
+                if first:
+                    self._first.add(session)
             if first:
                 self._wake.put(session)
 
@@ -69,10 +72,18 @@ class _Subscriptions(ServerListener):
                 self._counts[session] -= 1
                 if self._counts[session] <= 0:
                     del self._counts[session]
+                    self._first.discard(session)  # nobody left to publish to
 
     def watched(self, session_id: str) -> bool:
         with self._lock:
             return self._counts[session_id] > 0
+
+    def take_first(self, session_id: str) -> bool:
+        """Whether the session got a first subscription since this was last asked."""
+        with self._lock:
+            first = session_id in self._first
+            self._first.discard(session_id)
+            return first
 
 
 class LiveServer:
@@ -149,6 +160,10 @@ class LiveServer:
             shown = self._shown.get(session_id)
         if shown is None or not self.subscriptions.watched(session_id):
             return
+        if self.subscriptions.take_first(session_id):
+            # A viewer that comes after every earlier one left has seen nothing: start over, so that it
+            # gets the last scene graph, mixture and belief and the utterances so far.
+            shown.converter, shown.version, shown.published = None, None, set()
         after = None if shown.converter is None else shown.version
         try:
             body = self.client.get_recording(session_id, after)

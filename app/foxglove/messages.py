@@ -124,13 +124,28 @@ def _yaw(yaw: float) -> tuple[float, float, float, float]:
 
 
 def _quaternion(rotation: np.ndarray) -> tuple[float, float, float, float]:
-    """The unit quaternion (x, y, z, w) of a proper rotation matrix."""
+    """The unit quaternion (x, y, z, w) of a proper rotation matrix, by Shepperd's method.
+
+    4w^2, 4x^2, 4y^2 and 4z^2 are read off the diagonal; the largest (at least 1) gives its component, and
+    the off-diagonal sums and differences divided by it give the others with their signs. Taking every sign
+    from a difference instead fails near a half turn, where the differences vanish into rounding.
+    """
     m = rotation
-    w = math.sqrt(max(0.0, 1.0 + m[0, 0] + m[1, 1] + m[2, 2])) / 2
-    x = math.copysign(math.sqrt(max(0.0, 1.0 + m[0, 0] - m[1, 1] - m[2, 2])) / 2, m[2, 1] - m[1, 2])
-    y = math.copysign(math.sqrt(max(0.0, 1.0 - m[0, 0] + m[1, 1] - m[2, 2])) / 2, m[0, 2] - m[2, 0])
-    z = math.copysign(math.sqrt(max(0.0, 1.0 - m[0, 0] - m[1, 1] + m[2, 2])) / 2, m[1, 0] - m[0, 1])
-    return (x, y, z, w)
+    squares = (  # 4w^2, 4x^2, 4y^2, 4z^2
+        1.0 + m[0, 0] + m[1, 1] + m[2, 2],
+        1.0 + m[0, 0] - m[1, 1] - m[2, 2],
+        1.0 - m[0, 0] + m[1, 1] - m[2, 2],
+        1.0 - m[0, 0] - m[1, 1] + m[2, 2],
+    )
+    largest = max(range(4), key=squares.__getitem__)
+    s = 2.0 * math.sqrt(squares[largest])  # 4 times the largest component
+    if largest == 0:
+        return ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4)
+    if largest == 1:
+        return (s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s)
+    if largest == 2:
+        return ((m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s)
+    return ((m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4, (m[1, 0] - m[0, 1]) / s)
 
 
 def ellipsoid(mean: Sequence[float], covariance: Sequence[Sequence[float]], color: Color) -> SpherePrimitive:

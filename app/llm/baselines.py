@@ -38,7 +38,7 @@ BASELINE_MIN_EIGENVALUE_M2 = 1e-2
 def _numbers(value: Any, shape: tuple[int, ...], field: str) -> np.ndarray:
     try:
         array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an integer past the float range
         msg = f"{field}: expected numbers of shape {shape}, got {str(value)[:80]}"
         raise LLMResponseError(msg) from exc
     if array.shape != shape:
@@ -77,23 +77,37 @@ def read_mixture(reply: dict[str, Any], max_components: int = prompts.MAX_HYPOTH
     for index, component in enumerate(components):
         field = f"components[{index}]"
         gaussian = read_gaussian(component, field)
-        weight = component.get("weight")
-        if isinstance(weight, bool) or not isinstance(weight, int | float) or not math.isfinite(weight):
-            msg = f"{field}.weight: expected a finite number, got {weight!r}"
-            raise LLMResponseError(msg)
-        if weight < 0:
-            msg = f"{field}.weight: must be >= 0, got {weight}"
-            raise LLMResponseError(msg)
-        weights.append(float(weight))
+        weights.append(_weight(component.get("weight"), f"{field}.weight"))
         gaussians.append(gaussian)
     order = sorted(range(len(weights)), key=lambda k: -weights[k])[:max_components]
-    kept_weights = [weights[k] for k in order]
-    if sum(kept_weights) <= 0:
+    largest = weights[order[0]]
+    if largest <= 0:
         msg = "reply: every component weight is zero"
         raise LLMResponseError(msg)
+    # Divided by the largest before they are normalised: weights near the float maximum overflow their sum.
     return GaussianMixture.from_components(
-        kept_weights, [gaussians[k] for k in order], min_eigenvalue=BASELINE_MIN_EIGENVALUE_M2
+        [weights[k] / largest for k in order],
+        [gaussians[k] for k in order],
+        min_eigenvalue=BASELINE_MIN_EIGENVALUE_M2,
     )
+
+
+def _weight(value: Any, field: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        msg = f"{field}: expected a finite number, got {value!r}"
+        raise LLMResponseError(msg)
+    try:
+        weight = float(value)
+    except OverflowError as exc:  # JSON integers are unbounded
+        msg = f"{field}: expected a finite number, got an integer past the float range"
+        raise LLMResponseError(msg) from exc
+    if not math.isfinite(weight):
+        msg = f"{field}: expected a finite number, got {value!r}"
+        raise LLMResponseError(msg)
+    if weight < 0:
+        msg = f"{field}: must be >= 0, got {weight}"
+        raise LLMResponseError(msg)
+    return weight
 
 
 def _prompt_checksum(*texts: str) -> str:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import re
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -29,7 +30,7 @@ from app.errors import LLMResponseError, ModelUnavailable
 log = logging.getLogger("vlmap.llm")
 
 _FENCE = re.compile(r"```[ \t]*(?:json|JSON)?[ \t]*\n?(.*?)```", re.DOTALL)
-_THINKING = re.compile(r"<think>.*?</think>", re.DOTALL)
+_THINK_OPEN, _THINK_CLOSE = "<think>", "</think>"
 # Replies longer than this are not read: no prompt of this package asks for anything near it.
 _MAX_REPLY_CHARS = 200_000
 
@@ -124,6 +125,11 @@ class ChatClient:
                 )
                 failure.__cause__ = exc
                 continue
+            except httpx.DecodingError as exc:
+                # The body is read (and decompressed) inside the call: one its Content-Encoding does not
+                # fit is an answer, and an unusable one, not a failure to connect.
+                msg = f"LLM endpoint {ep.url} answered a body that does not decode: {exc}"
+                raise LLMResponseError(msg) from exc
             except httpx.TransportError as exc:
                 failure = EndpointUnavailable(f"LLM endpoint {ep.url} unreachable: {exc}", "unreachable")
                 failure.__cause__ = exc
@@ -166,11 +172,13 @@ def reply_text(response: httpx.Response) -> str:
     try:
         body = response.json()
         content = body["choices"][0]["message"]["content"]
-    except (ValueError, KeyError, IndexError, TypeError) as exc:
+    except (ValueError, KeyError, IndexError, TypeError, RecursionError) as exc:
         msg = f"LLM reply is not a chat completion: {_snippet(response.text)}"
         raise LLMResponseError(msg) from exc
     if isinstance(content, list):
-        content = "".join(p.get("text", "") for p in content if isinstance(p, dict))
+        content = "".join(
+            p["text"] for p in content if isinstance(p, dict) and isinstance(p.get("text"), str)
+        )
     if not isinstance(content, str) or not content.strip():
         msg = "LLM reply has no text content"
         raise LLMResponseError(msg)
@@ -183,7 +191,19 @@ def extract_json_object(text: str) -> dict[str, Any]:
     if len(text) > _MAX_REPLY_CHARS:
         msg = f"LLM reply is {len(text)} characters long, more than the {_MAX_REPLY_CHARS} read"
         raise LLMResponseError(msg)
-    text = _THINKING.sub("", text).strip()
+    text = strip_thinking(text).strip()
+    try:
+        found = _first_object(text)
+    except RecursionError as exc:  # the decoder recurses once per level of nesting
+        msg = "LLM reply nests JSON too deeply to decode"
+        raise LLMResponseError(msg) from exc
+    if found is None:
+        msg = f"LLM reply holds no JSON object: {_snippet(text)}"
+        raise LLMResponseError(msg)
+    return found
+
+
+def _first_object(text: str) -> dict[str, Any] | None:
     candidates = [text, *(m.group(1).strip() for m in _FENCE.finditer(text))]
     for candidate in candidates:
         try:
@@ -202,16 +222,36 @@ def extract_json_object(text: str) -> dict[str, Any]:
         if isinstance(value, dict):
             return value
         start = text.find("{", start + 1)
-    msg = f"LLM reply holds no JSON object: {_snippet(text)}"
-    raise LLMResponseError(msg)
+    return None
+
+
+def strip_thinking(text: str) -> str:
+    """`text` less its complete <think>...</think> blocks (a reasoning model's), each from an opening tag
+    to the first closing tag after it; from an opening tag that is never closed on, the text is kept.
+
+    One linear pass with str.find: a lazy regex would look for a closing tag again from every later opening
+    tag, quadratic in a reply of unclosed tags.
+    """
+    kept: list[str] = []
+    position = 0
+    while (start := text.find(_THINK_OPEN, position)) != -1:
+        end = text.find(_THINK_CLOSE, start + len(_THINK_OPEN))
+        if end == -1:
+            break
+        kept.append(text[position:start])
+        position = end + len(_THINK_CLOSE)
+    kept.append(text[position:])
+    return "".join(kept)
 
 
 def _retry_after_s(response: httpx.Response) -> float | None:
     value = response.headers.get("retry-after")
     try:
-        return max(float(value), 0.0) if value is not None else None
+        seconds = float(value) if value is not None else None
     except ValueError:  # an HTTP date: keep the exponential backoff
         return None
+    # float() also reads "nan" and "inf", which are no delay: keep the exponential backoff for those too.
+    return max(seconds, 0.0) if seconds is not None and math.isfinite(seconds) else None
 
 
 def _snippet(text: str, limit: int = 200) -> str:

@@ -90,17 +90,24 @@ def check_hypothesis(item: Any, scene_graph: SceneGraph) -> tuple[Hypothesis, fl
     if len(regions) != 1:
         return "regions_differ"
 
-    confidence = item.get("confidence")
-    if (
-        isinstance(confidence, bool)
-        or not isinstance(confidence, int | float)
-        or not math.isfinite(confidence)
-    ):
+    confidence = _finite(item.get("confidence"))
+    if confidence is None:
         return "confidence"
     hypothesis = Hypothesis(
         anchor_ids=tuple(anchor_ids), relation=relation, region_id=regions.pop(), text=sentence.strip()
     )
-    return hypothesis, min(max(float(confidence), 0.0), 1.0)
+    return hypothesis, min(max(confidence, 0.0), 1.0)
+
+
+def _finite(value: Any) -> float | None:
+    """A JSON number as a finite float, else None."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        number = float(value)
+    except OverflowError:  # JSON integers are unbounded: one past the float range is no usable number
+        return None
+    return number if math.isfinite(number) else None
 
 
 def read_hypotheses(
