@@ -746,6 +746,59 @@ def test_on_labels_rest_on_plain_tops_but_not_inside_seats(cases):
     assert resting_position(near) == list(near.target.position)
 
 
+def test_resting_on_moves_the_train_split_s_on_labels_and_no_other_split_s(tmp_path, cases):
+    from app.training.lsm import TrainConfig, _load_splits, resting_position
+
+    moved = [c for c in cases if resting_position(c) != list(c.target.position)]
+    assert moved  # the fixture holds an "on" case whose target sinks into its plain top
+    data = {"train": str(CASES), "calib": str(CASES), "val_unseen": str(CASES), "region_rate": 0.0}
+    own = np.array([c.target.position for c in cases])
+    for resting_on in (False, True):
+        config = TrainConfig.from_dict({"data": {**data, "resting_on": resting_on}, "model": TINY})
+        splits = _load_splits(config)
+        expected = np.array([resting_position(c) for c in cases]) if resting_on else own
+        np.testing.assert_allclose(splits["train"].targets, expected, atol=1e-6)
+        np.testing.assert_allclose(splits["calib"].targets, own, atol=1e-6)
+        np.testing.assert_allclose(splits["val_unseen"].targets, own, atol=1e-6)
+
+
+def test_a_training_run_writes_its_own_history_only(tmp_path):
+    from app.training.lsm import TrainConfig, train
+
+    config = TrainConfig.from_dict(
+        {
+            "data": {"train": str(CASES), "calib": str(CASES), "embedding_cache": str(tmp_path / "emb.npz")},
+            "model": TINY,
+            "optim": {"epochs": 1, "batch_size": 4, "eval_every_steps": 1, "threads": 1},
+        }
+    )
+    for _ in range(2):  # the second run into the same folder replaces the first's history
+        report = train(config, tmp_path / "run")
+    lines = (tmp_path / "run" / "history.jsonl").read_text(encoding="utf-8").splitlines()
+    assert [json.loads(line)["step"] for line in lines] == list(range(1, report["training"]["steps"] + 1))
+
+
+def test_max_train_cases_counts_cases_not_their_region_samples():
+    from app.training.lsm import load_split
+
+    split = load_split("t", str(CASES), LSMConfig(**TINY), limit=3, region_rate=1.0)
+    assert len(split.samples) == 6 and split.groups.count("region") == 3
+
+
+def test_a_checkpoint_is_scored_on_features_made_as_its_own_config_says(tiny_checkpoint, tmp_path):
+    from app.training.lsm import TrainConfig, evaluate_checkpoint
+
+    data = {"train": str(CASES), "calib": str(CASES), "embedding_cache": str(tmp_path / "emb.npz")}
+    own = TrainConfig.from_dict({"data": data, "model": TINY})
+    other = TrainConfig.from_dict(
+        {"data": data, "model": {**TINY, "max_objects": 4, "region_margin_xy": 3.0}}
+    )
+    scored = [
+        evaluate_checkpoint(tiny_checkpoint, c)["splits"]["calib"]["lsm"]["overall"] for c in (own, other)
+    ]
+    assert scored[0] == scored[1]
+
+
 def test_the_calibration_margin_multiplies_every_scale():
     rng = np.random.default_rng(3)
     targets = rng.normal(size=(500, 3))

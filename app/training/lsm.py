@@ -38,7 +38,7 @@ import random
 import time
 import zlib
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -73,8 +73,10 @@ class DataConfig:
     reports: dict[str, str] = field(default_factory=dict)  # more report-only case files, by name
     exclude_sources: list[str] = field(default_factory=list)  # left out of train, calib and val_seen
     region_rate: float = 0.25  # share of cases that also give a region sample
-    resting_on: bool = True  # train "on" targets resting on a plain top (see resting_position)
-    max_train_cases: int | None = None  # first N cases of the train file (for quick runs)
+    # Train "on" targets resting on a plain top (`resting_position`). Off in every shipped model: until
+    # the option reached the train split it had no effect, whatever a training record says.
+    resting_on: bool = False
+    max_train_cases: int | None = None  # first N usable cases of the train file (for quick runs)
     embedding_cache: str | None = None  # .npz; default <out>/embeddings.npz
 
 
@@ -231,9 +233,9 @@ def load_split(
     volumes: list[float] = []
     rooms: list[str] = []
     conventions: list[str] = []
-    skipped = 0
+    skipped = taken = 0
     for case in read_cases(path):
-        if limit is not None and len(samples) >= limit:
+        if limit is not None and taken >= limit:  # cases, not samples: a case may also give a region sample
             break
         source = str(case.meta.get("source", "unknown"))
         truth = case.hypotheses[0] if case.hypotheses else None
@@ -246,6 +248,7 @@ def load_split(
         volume = map_log_volume(case)
         position = resting_position(case) if resting_on else case.target.position
         samples.append(make_sample(case.scene_graph, truth.anchor_ids, truth.relation, target, cfg, position))
+        taken += 1
         groups.append(truth.relation.value)
         sources.append(source)
         volumes.append(volume)
@@ -600,6 +603,7 @@ def train(config: TrainConfig, out_dir: Path) -> dict[str, Any]:
     seed_everything(opt.seed)
     torch.set_num_threads(opt.threads)
     write_config(config, out_dir)
+    (out_dir / "history.jsonl").write_text("", encoding="utf-8")  # this run's validations only
 
     t0 = time.perf_counter()
     splits = _load_splits(config)
@@ -700,6 +704,7 @@ def recalibrate(model_dir: Path, config: TrainConfig, out_dir: Path) -> dict[str
     margin and prior), written to `out_dir` with its report and the config: what a change of the calibration
     costs without training again."""
     model, meta = load_checkpoint(Path(model_dir))
+    config = with_checkpoint_model(config, model.cfg)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     write_config(config, Path(out_dir))
     splits = _load_splits(config, include_train=False)
@@ -718,6 +723,16 @@ def recalibrate(model_dir: Path, config: TrainConfig, out_dir: Path) -> dict[str
     return report
 
 
+def with_checkpoint_model(config: TrainConfig, cfg: LSMConfig) -> TrainConfig:
+    """`config` with the checkpoint's model configuration: its weights read features made as that one says
+    (the text input, the objects kept, the region margins), whatever the given config's model section
+    holds; a difference is logged."""
+    if asdict(config.model) != asdict(cfg):
+        differing = sorted(k for k, v in asdict(cfg).items() if asdict(config.model).get(k) != v)
+        log.warning("model section unlike the checkpoint's in %s: the checkpoint's is used", differing)
+    return replace(config, model=cfg)
+
+
 def evaluate_checkpoint(
     model_dir: Path,
     config: TrainConfig,
@@ -732,6 +747,7 @@ def evaluate_checkpoint(
     """
     model, meta = load_checkpoint(Path(model_dir))
     if splits is None or packed is None:
+        config = with_checkpoint_model(config, model.cfg)
         splits = _load_splits(config, include_train=False)
         cache = _embedding_cache(config, Path(cache_dir) if cache_dir is not None else None)
         packed = {name: PackedSamples(split.samples, cache) for name, split in splits.items()}
@@ -771,6 +787,7 @@ def _load_splits(config: TrainConfig, include_train: bool = True) -> dict[str, S
             data.max_train_cases,
             exclude_sources=excluded,
             region_rate=data.region_rate,
+            resting_on=data.resting_on,  # the train split only: every evaluation scores the cases' own labels
         )
     calib = data.calib or data.val_seen
     assert calib is not None  # TrainConfig.from_dict checks it
