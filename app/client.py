@@ -88,11 +88,11 @@ def _keyed(key: str | None, **kwargs: Any) -> dict[str, Any]:
 
 
 def _pause(attempt: int, backoff_s: float, response: httpx.Response | None) -> float:
-    """Seconds to wait before attempt `attempt + 1`: Retry-After when the service gave one, else an
-    exponential backoff with jitter."""
+    """Seconds to wait before attempt `attempt + 1`: Retry-After when the service gave one (within
+    [0, MAX_PAUSE_S]: a negative one would make time.sleep raise), else an exponential backoff with jitter."""
     if response is not None:
         try:
-            return min(MAX_PAUSE_S, float(response.headers.get("retry-after", "")))
+            return max(0.0, min(MAX_PAUSE_S, float(response.headers.get("retry-after", ""))))
         except ValueError:
             pass
     return min(MAX_PAUSE_S, backoff_s * 2.0**attempt) * random.uniform(0.5, 1.0)
@@ -310,6 +310,8 @@ def _checked(response: httpx.Response) -> httpx.Response:
     try:
         body = response.json()
     except ValueError:
+        body = {}
+    if not isinstance(body, dict):  # JSON, but not the service's error object (a proxy's, say): no details
         body = {}
     raise VLMapHTTPError(
         response.status_code,

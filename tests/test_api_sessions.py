@@ -162,6 +162,29 @@ def test_if_none_match_compares_weakly_and_star_matches_any_version(
         assert other.status_code == 200
 
 
+def test_a_summary_etag_names_its_top_k_so_another_top_k_is_not_a_304(
+    client: TestClient, two_rooms: dict
+) -> None:
+    """The default top_k keeps the documented "v<version>"; a tag held for one top_k is no 304 for another."""
+    sid = _create(client, two_rooms, target_label="backpack")["id"]
+    client.post(f"/v1/sessions/{sid}/utterances", json={"utterance": "I left my backpack on the table"})
+    belief = f"/v1/sessions/{sid}/belief"
+    assert (
+        client.get(belief).headers["etag"]
+        == client.get(belief, params={"top_k": 5}).headers["etag"]
+        == '"v1"'
+    )
+    one = client.get(belief, params={"top_k": 1})
+    assert one.headers["etag"] == '"v1-k1"' and len(one.json()["summary"]["top_voxels"]) == 1
+    ten = client.get(belief, params={"top_k": 10}, headers={"If-None-Match": one.headers["etag"]})
+    assert ten.status_code == 200 and len(ten.json()["summary"]["top_voxels"]) == 10
+    for held, top_k in (('"v1"', 10), ('"v1-k10"', 5)):
+        assert client.get(belief, params={"top_k": top_k}, headers={"If-None-Match": held}).status_code == 200
+    for given in ('"v1-k10"', 'W/"v1-k10"', "*"):
+        again = client.get(belief, params={"top_k": 10}, headers={"If-None-Match": given})
+        assert (again.status_code, again.headers["etag"]) == (304, '"v1-k10"'), given
+
+
 def test_out_of_grid_voxels_are_counted_not_fatal(client: TestClient, two_rooms: dict) -> None:
     sid = _create(client, two_rooms, target_label="backpack")["id"]
     batch = {"voxels": [[0, 0, 0], [-1, 0, 0], [10_000, 0, 0]], "labels": ["chair"] * 3}

@@ -28,6 +28,7 @@ from PIL import Image, ImageStat
 from app.client import VLMapClient
 from app.sim.service import running_service
 from bench.dashboard_paint import (
+    KEY_ENTRY,
     QUICK_SERVICE,
     browser_paths,
     headless_chromium,
@@ -47,6 +48,8 @@ SCENE = json.loads(
 UPDATE_S = 2.0
 #: How long anything else may take on a busy machine (page loads, the first fetches, Swagger UI's render).
 PATIENCE_S = 120.0
+#: The idle time after which sessions of `expiring_service` expire (long enough for the page to list them).
+EXPIRY_S = 15.0
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +75,15 @@ def service() -> Iterator[tuple[str, str, str]]:
         yield url, viewer, robot
 
 
+@pytest.fixture(scope="module")
+def expiring_service() -> Iterator[str]:
+    """The base URL of a model-free `vlmap serve` without keys whose sessions expire after `EXPIRY_S` idle
+    and whose push streams end after a second (the page resumes them with Last-Event-ID)."""
+    env = {**QUICK_SERVICE, "VLMAP_SESSION_TTL_S": str(EXPIRY_S), "VLMAP_EVENTS_MAX_STREAM_S": "1"}
+    with running_service(env) as url:
+        yield url
+
+
 def wait(driver: WebDriver, condition: Any, timeout_s: float = PATIENCE_S) -> Any:
     from selenium.common.exceptions import StaleElementReferenceException
     from selenium.webdriver.support.ui import WebDriverWait
@@ -85,6 +97,29 @@ def text_of(driver: WebDriver, selector: str) -> list[str]:
     from selenium.webdriver.common.by import By
 
     return [element.text for element in driver.find_elements(By.CSS_SELECTOR, selector)]
+
+
+def open_dashboard(driver: WebDriver, url: str, key: str, session_id: str | None = None) -> None:
+    """A fresh load of the dashboard with `key` ("" on a service without keys), on `session_id` if given."""
+    driver.get(f"{url}/dashboard")
+    driver.execute_script("sessionStorage.setItem(arguments[0], arguments[1])", KEY_ENTRY, key)
+    driver.get("about:blank")  # else a change of the hash alone would not load the page again
+    driver.get(f"{url}/dashboard" + (f"#session={session_id}" if session_id else ""))
+
+
+def block_urls(driver: WebDriver, *patterns: str) -> None:
+    """Make the browser fail every request to a URL matching one of `patterns` (none: unblock)."""
+    driver.execute_cdp_cmd("Network.enable", {})
+    driver.execute_cdp_cmd("Network.setBlockedURLs", {"urls": list(patterns)})
+
+
+def listed(driver: WebDriver) -> list[str]:
+    """The ids of the sessions the page lists."""
+    return list(
+        driver.execute_script(
+            "return [...document.querySelectorAll('tr[data-session]')].map((tr) => tr.dataset.session)"
+        )
+    )
 
 
 def shown_version(driver: WebDriver) -> str | None:
@@ -161,3 +196,69 @@ def test_docs_render_every_operation_with_only_loopback_reachable(
     loaded = requested_urls(browser)
     assert f"{url}/openapi.json" in loaded
     assert all(u.startswith(f"{url}/") for u in loaded), loaded
+
+
+def test_a_scene_graph_read_that_failed_is_read_again(
+    browser: WebDriver, service: tuple[str, str, str]
+) -> None:
+    """A scene-graph read that failed (a network blip, a 503) is tried again by the next refresh; else the map
+    would lack the objects and regions until the session's scene graph is replaced."""
+    from selenium.webdriver.common.by import By
+
+    url, viewer, robot = service
+    client = VLMapClient(url, api_key=robot, timeout_s=120.0)
+    sid = client.create_session("robot-7", SCENE, target_label="backpack")["id"]
+    block_urls(browser, "*/scene-graph*")
+    try:
+        open_dashboard(browser, url, viewer, sid)
+        wait(browser, lambda d: "Could not read" in d.find_element(By.ID, "detail-meta").text)
+    finally:
+        block_urls(browser)
+    requested_urls(browser)
+    client.send_utterance(sid, "I left my backpack on the table in the kitchen")
+    wait(browser, lambda d: shown_version(d) == "1")
+    seen: list[str] = []
+    wait(
+        browser,
+        lambda d: seen.extend(requested_urls(d)) or any(u.endswith(f"/{sid}/scene-graph") for u in seen),
+    )
+
+
+def expired(client: VLMapClient, session_id: str) -> bool:
+    return all(s["id"] != session_id for s in client.list_sessions())
+
+
+def test_an_expired_session_leaves_the_list_when_the_stream_resumes(
+    browser: WebDriver, expiring_service: str
+) -> None:
+    """An expiry is no event, and a resumed stream sends no sync: the page reads the list again instead."""
+    client = VLMapClient(expiring_service)
+    open_dashboard(browser, expiring_service, "")
+    sid = client.create_session("robot-7", SCENE, target_label="mug")["id"]
+    wait(browser, lambda d: sid in listed(d))
+    wait(browser, lambda d: sid not in listed(d))
+
+
+def test_an_expired_session_leaves_the_list_when_its_reads_answer_404(
+    browser: WebDriver, expiring_service: str
+) -> None:
+    """Without a stream (so no list read again), a session selected after it expired leaves the list."""
+    from selenium.webdriver.common.by import By
+
+    client = VLMapClient(expiring_service)
+    sid = client.create_session("robot-7", SCENE, target_label="mug")["id"]
+    block_urls(browser, "*/v1/events*")
+    try:
+        open_dashboard(browser, expiring_service, "")
+        wait(browser, lambda d: sid in listed(d))
+        wait(browser, lambda _: expired(client, sid))
+
+        def select(d: WebDriver) -> bool:
+            d.find_element(By.CSS_SELECTOR, f'tr[data-session="{sid}"]').click()
+            return True
+
+        wait(browser, select)
+        wait(browser, lambda d: sid not in listed(d))
+        assert "gone" in browser.find_element(By.ID, "detail-meta").text
+    finally:
+        block_urls(browser)

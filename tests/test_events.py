@@ -22,6 +22,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
 import uvicorn
@@ -546,3 +547,28 @@ def test_a_replica_told_to_stop_ends_its_streams_at_once() -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+# -- the client against answers the service does not give ----------------------------------------------------
+
+
+def test_the_client_retries_at_once_after_a_negative_retry_after() -> None:
+    """A proxy's Retry-After of -1 is a retry at once, not a ValueError out of time.sleep."""
+    answers = iter([httpx.Response(429, headers={"Retry-After": "-1"}, json={"code": "rate_limit"})])
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        return next(answers, httpx.Response(200, json={"id": "s1"}))
+
+    with VLMapClient("http://vlmap.test", transport=httpx.MockTransport(handler)) as client:
+        assert client.get_session("s1") == {"id": "s1"}
+
+
+def test_an_error_body_that_is_not_an_object_is_an_http_error_without_details() -> None:
+    def handler(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(400, json=["bad"])
+
+    client = VLMapClient("http://vlmap.test", transport=httpx.MockTransport(handler))
+    with client, pytest.raises(VLMapHTTPError) as refused:
+        client.get_session("s1")
+    assert (refused.value.status, refused.value.code, refused.value.field) == (400, "http_error", None)
+    assert refused.value.message == '["bad"]'

@@ -195,6 +195,36 @@ def test_spark_dsg_json_without_header_or_partitions() -> None:
     check_hydra_graph(parse_scene_graph(document))
 
 
+def test_spark_dsg_oriented_room_box_becomes_its_axis_aligned_extents(tmp_path: Path) -> None:
+    """A 10 m x 2 m corridor whose box is turned 90 degrees about +z spans 2 m in x and 10 m in y; its local
+    sides taken as world extents would leave its own table (2 m along y from its centre) outside it."""
+    import spark_dsg as dsg
+
+    graph = dsg.DynamicSceneGraph()
+    corridor = dsg.RoomNodeAttributes()
+    corridor.name = "corridor"
+    corridor.position = np.array([0.0, 0.0, 1.5])
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=np.float32)
+    dims, center = np.array([10.0, 2.0, 3.0], dtype=np.float32), np.array([0.0, 0.0, 1.5], dtype=np.float32)
+    corridor.bounding_box = dsg.BoundingBox(dsg.BoundingBoxType.OBB, dims, center, turn)
+    graph.add_node(dsg.DsgLayers.ROOMS, dsg.NodeSymbol("R", 0), corridor)
+    table = dsg.ObjectNodeAttributes()
+    table.name = "table"
+    table.position = np.array([0.0, 2.0, 0.4])
+    table.bounding_box = dsg.BoundingBox(np.array([1.0, 0.6, 0.8], dtype=np.float32), table.position)
+    graph.add_node(dsg.DsgLayers.OBJECTS, dsg.NodeSymbol("O", 1), table)
+    graph.insert_edge(dsg.NodeSymbol("R", 0), dsg.NodeSymbol("O", 1))
+    path = tmp_path / "corridor.json"
+    graph.save(str(path), include_mesh=False)
+
+    sg = parse_scene_graph(path.read_text(encoding="utf-8"))
+    (region,), (obj,) = sg.regions, sg.objects
+    assert region.center == pytest.approx([0.0, 0.0, 1.5])
+    assert region.size == pytest.approx([2.0, 10.0, 3.0], abs=1e-6)
+    assert obj.region_id == region.id
+    assert all(abs(c - m) <= s / 2 for c, m, s in zip(obj.center, region.center, region.size, strict=True))
+
+
 def test_spark_dsg_binary_from_to_binary_and_sparkdsg_file(tmp_path: Path) -> None:
     payload = hydra_binary()
     assert detect_format(payload) is SceneGraphFormat.SPARK_DSG_BINARY

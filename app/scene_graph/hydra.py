@@ -29,8 +29,9 @@ Normalisation:
   box gets a 0.1 m cube at its node position, and ``attributes["size_defaulted"] = True`` marks both.
   Non-finite numbers are still rejected.
 - ROOMS layer -> regions: id = NodeSymbol string, name = attrs.name, else the rooms labelspace name,
-  else the id. center/size from the bounding box when it is valid (all extents > 0), else the box around
-  the room's position and its children's positions, each extent at least 0.1 m.
+  else the id. center/size from the bounding box when it is valid (all extents > 0; size = the sides of
+  the axis-aligned box around the box turned by its yaw), else the box around the room's position and its
+  children's positions, each extent at least 0.1 m.
 - An object's region is the room found by walking up parent edges (object -> place -> room, or object ->
   room); a parent is the endpoint of an edge in a higher layer. The nearest room wins, the lowest id on
   ties; objects under no room get ``region_id=None``.
@@ -49,6 +50,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from app.errors import InvalidSceneGraph
 from app.scene_graph.loader import (
     SPARK_DSG_ARRAY_TAG,
@@ -64,7 +67,7 @@ from app.scene_graph.loader import (
     describe,
     join_field,
 )
-from app.scene_graph.model import Region, SceneGraph, SceneObject
+from app.scene_graph.model import Region, SceneGraph, SceneObject, aabb_extents
 
 DEGENERATE_EXTENT_M = 0.1
 NO_SEMANTIC_LABEL = 2**32 - 1  # spark_dsg's SemanticNodeAttributes.NO_SEMANTIC_LABEL
@@ -390,7 +393,9 @@ def _room_region(room: _Node, children: list[_Node], labels: Mapping[int, str]) 
     symbol = node_symbol(room.node_id)
     box = _read_box(attrs.get("bounding_box"), join_field(field, "bounding_box"))
     if box is not None and all(d > 0 for d in box.dimensions):
-        center, size = box.center, box.dimensions
+        # Regions are axis-aligned and a room's box may be oriented: its local sides are not world extents.
+        center = box.center
+        size = aabb_extents(np.array([box.dimensions]), np.array([box.yaw]))[0].tolist()
     else:
         points = [as_vector3(attrs.get("position"), join_field(field, "position"))]
         for child in children:

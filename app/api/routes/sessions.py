@@ -32,13 +32,29 @@ _NOT_MODIFIED: dict[int | str, dict[str, object]] = {
 }
 
 
-def _unchanged(version: int, if_none_match: str | None) -> bool:
-    """Whether If-None-Match names the belief version's ETag ("v<version>") or is "*" (RFC 9110 §13.1.2:
-    weak comparison, so a W/ tag that a proxy weakened still matches)."""
+#: Top voxels of a summary when the request names no top_k.
+_DEFAULT_TOP_K = 5
+
+
+def _version_tag(version: int) -> str:
+    """The ETag of a belief version ("v<version>"): the top-down view's, the grid's, the default summary's."""
+    return f'"v{version}"'
+
+
+def _summary_tag(version: int, top_k: int) -> str:
+    """The ETag of a version's summary with `top_k` top voxels: the version's with the default top_k (what
+    clients build from an event's version), "v<version>-k<top_k>" with another, so that a tag held for one
+    top_k never makes a request for another a 304."""
+    return _version_tag(version) if top_k == _DEFAULT_TOP_K else f'"v{version}-k{top_k}"'
+
+
+def _unchanged(etag: str, if_none_match: str | None) -> bool:
+    """Whether If-None-Match names `etag`, the answer's current ETag, or is "*" (RFC 9110 §13.1.2: weak
+    comparison, so a W/ tag that a proxy weakened still matches)."""
     if if_none_match is None:
         return False
     tags = [t.strip().removeprefix("W/") for t in if_none_match.split(",")]
-    return "*" in tags or f'"v{version}"' in tags
+    return "*" in tags or etag in tags
 
 
 def _marked(applied: Applied[T], response: Response) -> Applied[T]:
@@ -191,13 +207,15 @@ async def get_belief(
     sessions: SessionsDep,
     format: schemas.BeliefFormatQuery = "summary",
     layers: schemas.LayersQuery = False,
-    top_k: schemas.TopKQuery = 5,
+    top_k: schemas.TopKQuery = _DEFAULT_TOP_K,
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
     """The fused posterior: summary (MAP, top voxels, moments, entropy, mass per object) or the whole grid."""
     info = await sessions.poll(principal, session_id, top_k)
-    if _unchanged(info.version, if_none_match):
-        return Response(status_code=304, headers={"ETag": f'"v{info.version}"'})
+    # The grid is every voxel, whatever top_k says: its tag is the version's (belief_grid_response).
+    etag = _version_tag(info.version) if format == "grid" else _summary_tag(info.version, top_k)
+    if _unchanged(etag, if_none_match):
+        return Response(status_code=304, headers={"ETag": etag})
     if format == "grid":
 
         async def download(release: Callable[[], None]) -> Response:
@@ -209,7 +227,9 @@ async def get_belief(
         )
     belief = await sessions.belief(principal, session_id, top_k, info)
     body = schemas.BeliefOut.of(belief).model_dump_json()
-    return Response(body, media_type="application/json", headers={"ETag": f'"v{belief.version}"'})
+    return Response(
+        body, media_type="application/json", headers={"ETag": _summary_tag(belief.version, top_k)}
+    )
 
 
 @router.get(
@@ -226,11 +246,12 @@ async def get_belief_topdown(
 ) -> Response:
     """The posterior seen from above: its mass per (x, y) column of voxels, for a dashboard's heat map."""
     info = await sessions.get(principal, session_id)
-    if _unchanged(info.version, if_none_match):
-        return Response(status_code=304, headers={"ETag": f'"v{info.version}"'})
+    etag = _version_tag(info.version)
+    if _unchanged(etag, if_none_match):
+        return Response(status_code=304, headers={"ETag": etag})
     view = await sessions.top_down(principal, session_id)
     body = schemas.TopDownOut.of(view).model_dump_json()
-    return Response(body, media_type="application/json", headers={"ETag": f'"v{view.version}"'})
+    return Response(body, media_type="application/json", headers={"ETag": _version_tag(view.version)})
 
 
 @router.get(

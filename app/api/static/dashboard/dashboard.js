@@ -12,10 +12,12 @@ const ROOT = new URL(".", location.href); // the service's root, also behind a p
 const DECADES = 4; // the heat map's log scale spans this many decades below the largest column
 const [MAP_WIDTH, MAP_HEIGHT] = [640, 640]; // the most the map takes on the page (px)
 const SHOWN_PLACES = 8; // places listed per table, those of at least 0.001 of the mass
+const GONE = "This session is gone (deleted, or expired after its idle time).";
 
 const $ = (id) => document.getElementById(id);
 
 class AuthError extends Error {}
+class NotFound extends Error {} // a session read answered 404: deleted or expired
 
 const state = {
   key: null,
@@ -43,6 +45,7 @@ async function getJSON(path, etag = null) {
     const body = await response.json().catch(() => ({}));
     throw new AuthError(body.message || `HTTP ${response.status}`);
   }
+  if (response.status === 404) throw new NotFound(`${path}: HTTP 404`);
   if (!response.ok) throw new Error(`${path}: HTTP ${response.status}`);
   return response.json();
 }
@@ -75,8 +78,11 @@ class Coalesced {
 
 // -- the push stream -----------------------------------------------------------------------------------------
 
-/** Follow a Server-Sent Events stream with fetch(), resuming with Last-Event-ID after a break. */
-async function follow(path, signal, onEvent) {
+/**
+ * Follow a Server-Sent Events stream with fetch(), resuming with Last-Event-ID after a break; `onResume` is
+ * called each time a stream resumes (the server sends no sync then).
+ */
+async function follow(path, signal, onEvent, onResume) {
   let last = null;
   let retryMs = 1000;
   while (!signal.aborted) {
@@ -90,6 +96,7 @@ async function follow(path, signal, onEvent) {
       }
       if (!response.ok) throw new Error(`push stream: HTTP ${response.status}`);
       setStatus("live", "live");
+      if (last) onResume();
       const reader = response.body.pipeThrough(new TextDecoderStream()).getReader();
       let buffer = "";
       let frame = {};
@@ -136,9 +143,7 @@ function onEvent(name, data, id) {
   if (name !== "belief") return;
   const kind = data.cause.kind;
   if (kind === "deleted") {
-    state.sessions.delete(data.session_id);
-    if (state.selected === data.session_id) $("detail-meta").textContent = "This session was deleted.";
-    renderSessions();
+    dropSession(data.session_id, "This session was deleted.");
     return;
   }
   const known = state.sessions.get(data.session_id);
@@ -179,11 +184,29 @@ async function loadSessions() {
 function summaryOf(row) {
   if (state.view && state.view.id === row.id) return; // the detail view reads it anyway
   row.refresh ||= new Coalesced(async () => {
-    const summary = await getJSON(`v1/sessions/${encodeURIComponent(row.id)}/belief`);
+    let summary;
+    try {
+      summary = await getJSON(`v1/sessions/${encodeURIComponent(row.id)}/belief`);
+    } catch (error) {
+      if (!(error instanceof NotFound)) throw error;
+      dropSession(row.id, GONE);
+      return;
+    }
     row.information_gain = summary.summary.information_gain_nats;
     renderSessions();
   });
   row.refresh.request();
+}
+
+/**
+ * Take a session off the list, saying `message` where it is the one selected. An expired session has no
+ * event: a 404 on one of its reads, or its absence from the list read again when the stream resumes, is how
+ * the page learns it is gone.
+ */
+function dropSession(id, message) {
+  state.sessions.delete(id);
+  if (state.selected === id) $("detail-meta").textContent = message;
+  renderSessions();
 }
 
 function ago(unixSeconds) {
@@ -265,6 +288,10 @@ async function select(id) {
     try {
       await refreshView(view);
     } catch (error) {
+      if (error instanceof NotFound) {
+        dropSession(id, GONE);
+        return;
+      }
       if (state.view === view && !(error instanceof AuthError)) {
         $("detail-meta").textContent = `Could not read the session: ${error.message}`;
       }
@@ -290,13 +317,21 @@ async function select(id) {
 }
 
 async function refreshView(view) {
-  const sceneGraph = view.sceneGraphStale ? getJSON(`${view.path}/scene-graph`) : Promise.resolve(null);
+  // Cleared before the read, so that a replacement announced while it runs is read by the next refresh; set
+  // again when this one fails, or the map would lack the scene graph until the next replacement.
+  const readGraph = view.sceneGraphStale;
   view.sceneGraphStale = false;
-  const [summary, topdown, graph] = await Promise.all([
-    getJSON(`${view.path}/belief`, view.summaryTag),
-    getJSON(`${view.path}/belief/topdown`, view.topdownTag),
-    sceneGraph,
-  ]);
+  let summary, topdown, graph;
+  try {
+    [summary, topdown, graph] = await Promise.all([
+      getJSON(`${view.path}/belief`, view.summaryTag),
+      getJSON(`${view.path}/belief/topdown`, view.topdownTag),
+      readGraph ? getJSON(`${view.path}/scene-graph`) : null,
+    ]);
+  } catch (error) {
+    if (readGraph) view.sceneGraphStale = true;
+    throw error;
+  }
   if (state.view !== view) return;
   if (graph) view.sceneGraph = graph;
   if (summary) {
@@ -553,7 +588,8 @@ function askForKey(message = "") {
 function listen() {
   if (state.stream) state.stream.abort();
   state.stream = new AbortController();
-  follow("v1/events", state.stream.signal, onEvent);
+  // Events missed while the stream was broken are replayed, but an expiry is no event: read the list again.
+  follow("v1/events", state.stream.signal, onEvent, () => loadSessions().catch(report));
 }
 
 async function open(key) {
