@@ -396,9 +396,20 @@ def standardisers(cases: Sequence[FitCase]) -> tuple[np.ndarray, ...]:
     return mean, scale, g_mean, g_scale
 
 
-def held_out(case: GroundingCase, share: float) -> bool:
-    """Whether a case's scan is in the held-out part of the training scans (a fixed share by scan id)."""
-    scene = str(case.meta.get("scene_id", case.case_id))
+def held_out(case: GroundingCase, share: float) -> bool | None:
+    """Whether a case is in the held-out part of the training scans (a fixed share by scan id); None for a
+    house whose rooms fall on both sides, which belongs to neither part.
+
+    A house is split by its rooms, not by its own id: the rooms' own cases and the human descriptions of
+    those scans are split by scan id, so a house on one side by its id would carry the other side's scans.
+    A straddling house is dropped rather than held out: held out, it would measure scans the fit has seen."""
+    scenes = case.meta.get("scene_ids") or [case.meta.get("scene_id", case.case_id)]
+    sides = {_scan_held_out(str(scene), share) for scene in scenes}
+    return sides.pop() if len(sides) == 1 else None
+
+
+def _scan_held_out(scene: str, share: float) -> bool:
+    """Whether a scan is held out, by its room: rescans ("scene0010_00", "scene0010_01") share one side."""
     room = scene.rsplit("_", 1)[0] if scene.startswith("scene") else scene
     return zlib.crc32(room.encode()) / 2**32 < share
 
@@ -470,17 +481,21 @@ def fit_proposer(
         sources += [("built", c) for c in _cases(path, built_every, originals_only=True)]
     template = ProposerParams.untrained(
         encoder_sha256=encoder.sha256,
-        target_boxes=target_box_table(c for _, c in sources if not held_out(c, held_out_share)),
+        target_boxes=target_box_table(c for _, c in sources if held_out(c, held_out_share) is False),
     )
     proposer = BuiltinProposer(encoder, template)
     prepared: dict[str, list[FitCase]] = {"fit": [], "held_out": []}
-    skipped = 0
+    skipped = straddling = 0
     for kind, case in tqdm(sources, desc="cases", unit="case", disable=not progress):
+        side = held_out(case, held_out_share)
+        if side is None:
+            straddling += 1
+            continue
         fit_case = prepare_case(case, proposer, grounder, kind)
         if fit_case is None:
             skipped += 1
             continue
-        prepared["held_out" if held_out(case, held_out_share) else "fit"].append(fit_case)
+        prepared["held_out" if side else "fit"].append(fit_case)
     prepare_s = time.perf_counter() - started
     mean, scale, g_mean, g_scale = standardisers(prepared["fit"])
     fit_batch = _batch(prepared["fit"], mean, scale, g_mean, g_scale)
@@ -509,6 +524,7 @@ def fit_proposer(
             for k, v in prepared.items()
         },
         "skipped": skipped,
+        "straddling_houses": straddling,
         "l2": l2,
         "l2_trials": {str(t[1]): (t[0] if math.isfinite(t[0]) else None) for t in trials},
         "gamma": gamma,
