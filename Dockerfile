@@ -6,13 +6,19 @@ ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 HF_HUB_OFFLINE=1 \
 RUN useradd --create-home --uid 10001 vlmap
 WORKDIR /srv/vlmap
 
+# An index that serves CPU builds of torch 2.13.0 (PyTorch publishes one): the default index's torch is the
+# CUDA build, which without its CUDA libraries (left out by --no-deps) cannot even be imported.
+ARG TORCH_INDEX_URL
 COPY requirements.lock pyproject.toml README.md ./
 COPY app ./app
 COPY models ./models
-# The runtime lock only (no test or lint tools); it is complete, hence --no-deps. torch==2.13.0 is pinned in
-# it: a CPU build (never a bare `torch`).
-RUN python -m venv .venv \
+# torch first, from that index ("2.13.0+cpu" satisfies the lock's torch==2.13.0, so the lock keeps it); then
+# the runtime lock only (no test or lint tools), which is complete, hence --no-deps.
+RUN test -n "$TORCH_INDEX_URL" \
+ || { echo "build with --build-arg TORCH_INDEX_URL=<an index of CPU builds of torch>" >&2; exit 1; } \
+ && python -m venv .venv \
  && .venv/bin/python -m pip install --quiet --upgrade pip \
+ && .venv/bin/python -m pip install --quiet --no-deps --index-url "$TORCH_INDEX_URL" torch==2.13.0 \
  && .venv/bin/python -m pip install --quiet --no-deps -r requirements.lock \
  && .venv/bin/python -m pip install --quiet --no-deps -e .
 

@@ -69,3 +69,24 @@ def test_compose_runs_two_replicas_on_redis_with_aof_behind_a_balancer() -> None
     assert "--appendonly" in services["redis"]["command"] and "yes" in services["redis"]["command"]
     nginx = (DEPLOY / "nginx.conf").read_text()
     assert all(f"server {name}:8000" in nginx for name in ("vlmap-a", "vlmap-b"))
+
+
+def test_the_image_takes_torch_from_an_index_of_cpu_builds_before_the_lock() -> None:
+    """The default index's torch is the CUDA build, whose libraries `--no-deps` leaves out: the image could
+    not import it."""
+    dockerfile = (DEPLOY.parent / "Dockerfile").read_text()
+    lock = (DEPLOY.parent / "requirements.lock").read_text()
+    (pinned,) = re.findall(r"^torch==(\S+)$", lock, flags=re.MULTILINE)
+    torch_step = dockerfile.index(f'--index-url "$TORCH_INDEX_URL" torch=={pinned}')
+    assert "ARG TORCH_INDEX_URL" in dockerfile and torch_step < dockerfile.index("-r requirements.lock")
+    compose = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+    replicas = [s for s in compose["services"].values() if "build" in s]
+    assert all("TORCH_INDEX_URL" in s["build"]["args"] for s in replicas)
+
+
+def test_the_balancer_drops_idle_connections_before_the_service_closes_them() -> None:
+    """A connection the service closed and nginx reuses fails a POST with a 502 (nginx does not retry it)."""
+    upstream = re.search(r"upstream vlmap \{(.*?)\}", (DEPLOY / "nginx.conf").read_text(), flags=re.DOTALL)
+    assert upstream is not None
+    (timeout,) = re.findall(r"keepalive_timeout (\d+)s;", upstream.group(1))
+    assert int(timeout) < Settings().keep_alive_s
