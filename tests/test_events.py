@@ -324,7 +324,8 @@ def test_resuming_with_last_event_id_replays_exactly_what_was_missed() -> None:
         for k in range(8, 18):  # versions 9-18: the history (8 events) no longer reaches back to 8
             batch(client, sid, k)
         version = 18
-        for stale in (again[-1].id, "nonsense", f"{sid}:0.1"):
+        past_the_newest = again[-1].id.rsplit(".", 1)[0] + ".999999999"  # an id no event had: never followed
+        for stale in (again[-1].id, "nonsense", f"{sid}:0.1", past_the_newest):
             late = follow(stale, until=version + 1)
             first = late.wait(lambda events: bool(events), "the sync")[0]
             assert first.event == "sync" and first.data["reason"] == "expired", stale
@@ -572,3 +573,13 @@ def test_an_error_body_that_is_not_an_object_is_an_http_error_without_details() 
         client.get_session("s1")
     assert (refused.value.status, refused.value.code, refused.value.field) == (400, "http_error", None)
     assert refused.value.message == '["bad"]'
+
+
+def test_a_redis_entry_id_past_what_redis_takes_is_no_id() -> None:
+    """Parts of 64 bits at most, and nothing follows the largest id: Redis refuses a range from either."""
+    from app.stores.redis_events import entry_order
+
+    assert entry_order("5-3") == (5, 3)
+    assert entry_order(f"{2**64 - 2}-0") == (2**64 - 2, 0)
+    assert entry_order("1-99999999999999999999") is None
+    assert entry_order(f"{2**64 - 1}-{2**64 - 1}") is None

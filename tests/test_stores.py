@@ -1243,6 +1243,19 @@ def test_memory_head_of_an_expired_session_is_not_found() -> None:
         store.head_and_scene_graph("brief")
 
 
+def test_an_expired_session_s_events_go_with_it_and_a_new_one_of_its_id_starts_afresh() -> None:
+    clock = FakeClock()
+    store = memory_store(ttl_s=10.0, clock=clock)
+    store.create(make_session("brief"))
+    store.detect("brief", [0.7, 0.2], flat_idx=np.array([1, 2]))
+    assert [e.kind for e in store.run(store.events.retained("brief"))] == ["created", "update"]
+    clock.now += 11.0
+    assert store.run(store.purge_expired()) == 1
+    assert store.run(store.events.retained("brief")) == []
+    store.create(make_session("brief"))
+    assert [e.kind for e in store.run(store.events.retained("brief"))] == ["created"]
+
+
 def test_head_is_the_info_of_load_without_reading_the_layers(store: Any) -> None:
     session = make_session("meta-only")
     store.create(session)

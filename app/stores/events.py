@@ -237,6 +237,12 @@ class MemoryEventLog:
             return None
         return (int(seq), 0)
 
+    def forget(self, session_id: str) -> None:
+        """Drop a session's history without an event: it expired (a session made again under its id must
+        not inherit it)."""
+        with self._lock:
+            self._sessions.pop(session_id, None)
+
     async def replay(self, session_id: str, after: str) -> list[StoredEvent] | None:
         order = self.order(after)
         if order is None:

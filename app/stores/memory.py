@@ -489,6 +489,8 @@ class MemorySessionStore:
             entry.deleted = True
             if announce:
                 self._publish(entry.session, {"kind": "deleted"}, now, last=True)
+            else:  # an expiry has no event, but its history goes as a deletion's does
+                self.events.forget(entry.session.id)
             if self._dir is not None:
                 (self._dir / _SNAPSHOT_DIR / f"{entry.session.id}.snap").unlink(missing_ok=True)
             with self._registry_lock:

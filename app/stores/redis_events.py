@@ -27,6 +27,8 @@ from app.stores.events import DEFAULT_HISTORY, EventSink, StoredEvent
 log = logging.getLogger(__name__)
 
 _ENTRY_ID = re.compile(r"(\d{1,20})-(\d{1,20})")
+_ID_PART_END = 2**64
+_LAST_ID = (_ID_PART_END - 1, _ID_PART_END - 1)
 #: How long a new subscription may take to be confirmed before a stream is refused (seconds).
 _SUBSCRIBE_WAIT_S = 5.0
 #: Pause before the subscription connects again after losing Redis (seconds; doubled up to the last).
@@ -36,9 +38,13 @@ DELETED_STREAM_MS = 60_000
 
 
 def entry_order(entry_id: str) -> tuple[int, int] | None:
-    """A stream entry id as the pair it is ordered by; None if it is not one."""
+    """A stream entry id as the pair it is ordered by; None if it is not one. Redis's ids are two 64-bit
+    parts, and the largest has nothing after it (an exclusive range from it is refused): neither is one."""
     match = _ENTRY_ID.fullmatch(entry_id)
-    return (int(match[1]), int(match[2])) if match else None
+    if not match:
+        return None
+    order = (int(match[1]), int(match[2]))
+    return order if max(order) < _ID_PART_END and order != _LAST_ID else None
 
 
 def parse_message(payload: bytes) -> StoredEvent:
