@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import msgpack
@@ -134,6 +135,30 @@ def test_json_and_msgpack_batches_give_identical_beliefs(client: TestClient, two
     assert r1.status_code == r2.status_code == 200, (r1.text, r2.text)
     assert r1.json()["stamp"] == r2.json()["stamp"] == 1.5
     np.testing.assert_array_equal(_grid(client, a["id"], True)["vis"], _grid(client, b["id"], True)["vis"])
+
+
+def test_a_msgpack_sensor_model_that_is_no_map_is_refused(client: TestClient, two_rooms: dict) -> None:
+    session = _create(client, two_rooms, target_label="backpack", label_map={"1": "backpack"})
+    points = np.asarray(session["grid"]["min_corner"]) + 0.5 * session["grid"]["voxel_size"]
+    envelope = msgpack.unpackb(encode_msgpack_batch(points=points[None], labels=np.array([1])))
+    for sensor_model, status in ((None, 200), (False, 422), (0, 422)):
+        packed = msgpack.packb(envelope | {"sensor_model": sensor_model})
+        answer = client.post(
+            f"/v1/sessions/{session['id']}/observations",
+            content=packed,
+            headers={"content-type": "application/msgpack"},
+        )
+        assert answer.status_code == status, (sensor_model, answer.text)
+
+
+def test_an_observation_batch_in_a_json_based_media_type_is_json(client: TestClient, two_rooms: dict) -> None:
+    sid = _create(client, two_rooms, target_label="backpack")["id"]
+    answer = client.post(
+        f"/v1/sessions/{sid}/observations",
+        content=json.dumps({"voxels": [[1, 1, 1]], "labels": ["chair"]}),
+        headers={"content-type": "application/vnd.robot.batch+json"},
+    )
+    assert answer.status_code == 200 and answer.json()["voxels_updated"] == 1
 
 
 def test_etag_and_not_modified(client: TestClient, two_rooms: dict) -> None:

@@ -28,7 +28,7 @@ from fastapi import Request
 from fastapi.responses import StreamingResponse
 from pydantic import TypeAdapter
 
-from app.api.bodies import json_bytes, media_type, validate_json
+from app.api.bodies import is_json, json_bytes, media_type, validate_json
 from app.api.schemas import MAX_LABEL_CHARS, ObservationBatchJson
 from app.belief.session import LabelNames, Session
 from app.errors import InvalidInput, LimitExceeded, UnsupportedMediaType
@@ -135,7 +135,8 @@ def decode_msgpack_batch(body: bytes, max_voxels: int) -> ObservationBatch:
         labels = decode_label_names(labels_raw, max_voxels)
     else:
         labels = unpack_array(labels_raw, "labels", max_voxels).astype(np.int64)
-    sensor = envelope.get("sensor_model") or {}
+    sensor = envelope.get("sensor_model")
+    sensor = {} if sensor is None else sensor  # nil is absent; false or 0 is no map (as JSON's schema says)
     if not isinstance(sensor, dict) or set(sensor) - {"tp", "fp"}:
         msg = "sensor_model must be a map with tp and/or fp"
         raise InvalidInput(msg, field="sensor_model")
@@ -289,7 +290,7 @@ async def read_batch(request: Request, run: Runner, max_voxels: int, max_errors:
         raw = await request.body()
         decode = partial(decode_msgpack_batch, raw, max_voxels)
         return decode() if len(raw) <= INLINE_DECODE_BYTES else await run(decode)
-    if content_type == "application/json":
+    if is_json(content_type):  # "...+json" too, as every JSON body of the API
         body = await json_bytes(request)
         batch: ObservationBatch = await run(decode_json_batch, body, max_voxels, max_errors)
         return batch
