@@ -38,7 +38,7 @@ import numpy as np
 
 from app.belief import fusion
 from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_MAX_VOXELS, DEFAULT_VOXEL_SIZE_M, VoxelGrid
-from app.belief.summary import ON_MARGIN_M, PosteriorSummary, cached_place_index, summarize
+from app.belief.summary import DEFAULT_TOP_K, ON_MARGIN_M, PosteriorSummary, cached_place_index, summarize
 from app.errors import Conflict, InvalidInput, LimitExceeded
 from app.grounding.mixture import GaussianMixture
 from app.scene_graph.model import SceneGraph
@@ -607,7 +607,7 @@ class Session:
         )
 
     def summary(
-        self, *, top_k: int = 5, max_places: int = 10, on_margin: float = ON_MARGIN_M
+        self, *, top_k: int = DEFAULT_TOP_K, max_places: int = 10, on_margin: float = ON_MARGIN_M
     ) -> PosteriorSummary:
         return self.belief.summary(self.scene_graph, top_k=top_k, max_places=max_places, on_margin=on_margin)
 

@@ -82,6 +82,8 @@ ON_MARGIN_M = 0.3
 #: What a summary holds, as a number: summaries shared between processes (the Redis store) are keyed by it,
 #: so that a replica never reads one made under another definition (2: support places and structure).
 SUMMARY_FORMAT = 2
+#: Most probable voxels a summary lists when nobody asks for another number.
+DEFAULT_TOP_K = 5
 #: Voxels per block in the top-k search; 1024 float32 values make one cheap SIMD row maximum.
 _TOPK_BLOCK = 1024
 #: Voxels per chunk of the two passes over the grid (256 kB of float32: stays in L2).
@@ -484,7 +486,7 @@ def summarize(
     vis: np.ndarray,
     scene_graph: SceneGraph | None = None,
     *,
-    top_k: int = 5,
+    top_k: int = DEFAULT_TOP_K,
     max_places: int = 10,
     on_margin: float = ON_MARGIN_M,
     scene_fingerprint: str | None = None,

@@ -520,7 +520,7 @@ def _unknown_relatum(tokens: list[str], start: int, stop: int) -> str:
     """The words a relation phrase governs when none names an object: up to the next clause word."""
     words: list[str] = []
     for token in tokens[start:stop]:
-        if token in _COPULAS or token in ("that", "which", "who", "where", "and", "or", "but", "so"):
+        if token in _COPULAS or token in _RELATIVE_PRONOUNS or token in ("where", "and", "or", "but", "so"):
             break
         words.append(token)
     phrase = clean_target(" ".join(words[:4]))

@@ -35,7 +35,7 @@ from app.belief.session import (
     language_log_likelihood,
     new_session,
 )
-from app.belief.summary import SUMMARY_FORMAT, PosteriorSummary, column_mass, place_voxels
+from app.belief.summary import DEFAULT_TOP_K, SUMMARY_FORMAT, PosteriorSummary, column_mass, place_voxels
 from app.errors import AlreadyApplied, IdempotencyKeyReused, InvalidInput, LimitExceeded, NotFound, VLMapError
 from app.grounding.sensor import Grounding, LanguageSensor
 from app.scene_graph.limits import check_coordinates
@@ -432,7 +432,7 @@ class SessionService:
         return info
 
     async def belief(
-        self, caller: Caller, session_id: str, top_k: int = 5, info: SessionInfo | None = None
+        self, caller: Caller, session_id: str, top_k: int = DEFAULT_TOP_K, info: SessionInfo | None = None
     ) -> Belief:
         """The posterior summary of the current version (of `info`'s, when given), computed once per version
         in this process, and once per version fleet-wide where the store shares summaries."""

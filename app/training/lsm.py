@@ -727,8 +727,9 @@ def with_checkpoint_model(config: TrainConfig, cfg: LSMConfig) -> TrainConfig:
     """`config` with the checkpoint's model configuration: its weights read features made as that one says
     (the text input, the objects kept, the region margins), whatever the given config's model section
     holds; a difference is logged."""
-    if asdict(config.model) != asdict(cfg):
-        differing = sorted(k for k, v in asdict(cfg).items() if asdict(config.model).get(k) != v)
+    given, own = asdict(config.model), asdict(cfg)
+    if given != own:
+        differing = sorted(k for k, v in own.items() if given.get(k) != v)
         log.warning("model section unlike the checkpoint's in %s: the checkpoint's is used", differing)
     return replace(config, model=cfg)
 

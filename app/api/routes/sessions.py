@@ -16,6 +16,7 @@ from app.api.idempotency import REPLAYED_HEADER, IdempotencyDep, replayable, wit
 from app.api.routes.ground import caller_hypotheses, check_utterance, resolve_scene_graph, to_response
 from app.api.scene_graph_bodies import SceneGraphBody, with_spark_dsg
 from app.api.wire import BELIEF_RESPONSES, OBSERVATION_REQUEST_BODY, belief_grid_response, read_batch
+from app.belief.summary import DEFAULT_TOP_K
 from app.scene_graph.model import SceneGraph
 from app.sessions import Applied
 
@@ -32,10 +33,6 @@ _NOT_MODIFIED: dict[int | str, dict[str, object]] = {
 }
 
 
-#: Top voxels of a summary when the request names no top_k.
-_DEFAULT_TOP_K = 5
-
-
 def _version_tag(version: int) -> str:
     """The ETag of a belief version ("v<version>"): the top-down view's, the grid's, the default summary's."""
     return f'"v{version}"'
@@ -45,7 +42,7 @@ def _summary_tag(version: int, top_k: int) -> str:
     """The ETag of a version's summary with `top_k` top voxels: the version's with the default top_k (what
     clients build from an event's version), "v<version>-k<top_k>" with another, so that a tag held for one
     top_k never makes a request for another a 304."""
-    return _version_tag(version) if top_k == _DEFAULT_TOP_K else f'"v{version}-k{top_k}"'
+    return _version_tag(version) if top_k == DEFAULT_TOP_K else f'"v{version}-k{top_k}"'
 
 
 def _unchanged(etag: str, if_none_match: str | None) -> bool:
@@ -207,7 +204,7 @@ async def get_belief(
     sessions: SessionsDep,
     format: schemas.BeliefFormatQuery = "summary",
     layers: schemas.LayersQuery = False,
-    top_k: schemas.TopKQuery = _DEFAULT_TOP_K,
+    top_k: schemas.TopKQuery = DEFAULT_TOP_K,
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
     """The fused posterior: summary (MAP, top voxels, moments, entropy, mass per object) or the whole grid."""
