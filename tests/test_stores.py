@@ -1256,6 +1256,21 @@ def test_an_expired_session_s_events_go_with_it_and_a_new_one_of_its_id_starts_a
     assert [e.kind for e in store.run(store.events.retained("brief"))] == ["created"]
 
 
+def test_a_replay_from_an_id_past_the_newest_event_is_not_held(store: Any) -> None:
+    """Such an id is none the store gave: following from it would skip every event to come."""
+    store.create(make_session("ahead"))
+    store.detect("ahead", [0.7, 0.2], flat_idx=np.array([1, 2]))
+    tail = store.run(store.events.tail("ahead"))
+    if "." in tail:  # the memory store's "<epoch>.<n>"
+        epoch, seq = tail.rsplit(".", 1)
+        ahead = f"{epoch}.{int(seq) + 1000}"
+    else:  # a Redis stream entry "<ms>-<n>"
+        ms, seq = tail.split("-")
+        ahead = f"{int(ms) + 10**6}-{seq}"
+    assert store.run(store.events.replay("ahead", tail)) == []
+    assert store.run(store.events.replay("ahead", ahead)) is None
+
+
 def test_head_is_the_info_of_load_without_reading_the_layers(store: Any) -> None:
     session = make_session("meta-only")
     store.create(session)

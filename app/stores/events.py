@@ -248,6 +248,8 @@ class MemoryEventLog:
         if order is None:
             return None
         with self._lock:
+            if order > (self._seq, 0):  # past the newest event: no id this log gave (following it skips all)
+                return None
             history = self._sessions.get(session_id)
             if history is None:  # no event of the session since this process started (or it is gone)
                 return []

@@ -162,6 +162,9 @@ class RedisEventLog:
         except RedisError as exc:
             msg = f"the session store (Redis) is unavailable: {type(exc).__name__}: {exc}"
             raise StoreUnavailable(msg) from exc
+        newest = entry_order(info["last-generated-id"].decode())
+        if newest is None or order > newest:  # no id this stream gave: following it would skip every event
+            return None
         first = entry_order(info["first-entry"][0].decode()) if info.get("first-entry") else None
         never_trimmed = int(info["entries-added"]) == int(info["length"])
         if not (never_trimmed and order == (0, 0)) and (first is None or order < first):
