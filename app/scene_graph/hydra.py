@@ -53,8 +53,7 @@ from typing import Any
 import numpy as np
 
 from app.errors import InvalidSceneGraph
-from app.scene_graph.loader import (
-    SPARK_DSG_ARRAY_TAG,
+from app.scene_graph.fields import (
     as_float,
     as_int,
     as_list,
@@ -69,6 +68,8 @@ from app.scene_graph.loader import (
 )
 from app.scene_graph.model import Region, SceneGraph, SceneObject, aabb_extents
 
+# The Spark-DSG binary opens with a msgpack-style array tag (0xdd): the layer list, or the file header.
+SPARK_DSG_ARRAY_TAG = 0xDD
 DEGENERATE_EXTENT_M = 0.1
 NO_SEMANTIC_LABEL = 2**32 - 1  # spark_dsg's SemanticNodeAttributes.NO_SEMANTIC_LABEL
 # The header a .sparkdsg file starts with: the string "SPARK_DSG" as a 9-byte array.

@@ -16,16 +16,14 @@ Every failure raises `InvalidSceneGraph` whose `field` is a dotted path into the
 spells it ("objects.3.size", "Office.objects.7.center", "nodes.4.attributes.bounding_box.dimensions",
 "object_result_csv.12.object_bbox_xlength"), or None when the payload as a whole is at fault (not JSON,
 no known format). More objects than `max_objects` raises `LimitExceeded(limit_name="max_objects")`.
-The small validators below are shared by the format readers so that all of them word errors alike.
+The validators the readers share are in `app.scene_graph.fields`.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import math
-import re
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
@@ -33,12 +31,14 @@ from typing import Any
 from pydantic import ValidationError
 
 from app.errors import InvalidSceneGraph, LimitExceeded
-from app.scene_graph.model import Region, SceneGraph, SceneObject
+from app.scene_graph.fields import as_mapping, check_object_limit, describe, from_validation_error
+from app.scene_graph.hydra import SPARK_DSG_ARRAY_TAG, parse_spark_dsg_binary, parse_spark_dsg_json
+from app.scene_graph.model import SceneGraph
+from app.scene_graph.region_grouped import parse_region_grouped
+from app.scene_graph.vla3d import find_vla3d_scene_of_file, load_vla3d_scene, parse_vla3d_payload
 
 logger = logging.getLogger(__name__)
 
-# The Spark-DSG binary opens with a msgpack-style array tag (0xdd): the layer list, or the file header.
-SPARK_DSG_ARRAY_TAG = 0xDD
 INTERNAL_ERROR_MESSAGE = "internal error while reading the scene graph"
 
 
@@ -48,163 +48,6 @@ class SceneGraphFormat(StrEnum):
     SPARK_DSG_JSON = "spark_dsg_json"
     SPARK_DSG_BINARY = "spark_dsg_binary"
     VLA3D = "vla3d"
-
-
-# --- validators shared by the readers ---------------------------------------------------------------
-
-
-def join_field(prefix: str | None, *parts: object) -> str:
-    """Dotted path: join_field("Office.objects", 7, "center") == "Office.objects.7.center"."""
-    head = [prefix] if prefix else []
-    return ".".join([*head, *(str(p) for p in parts)])
-
-
-def describe(value: object, limit: int = 60) -> str:
-    """A short repr for error messages (payloads can be huge)."""
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def as_mapping(value: object, field: str | None) -> dict[str, Any]:
-    """`value` as a JSON object with string keys."""
-    if not isinstance(value, dict):
-        msg = f"expected a JSON object, got {type(value).__name__} {describe(value)}"
-        raise InvalidSceneGraph(msg, field=field)
-    for key in value:
-        if not isinstance(key, str):
-            msg = f"keys must be strings, got {describe(key)}"
-            raise InvalidSceneGraph(msg, field=field)
-    return value
-
-
-def as_list(value: object, field: str | None) -> list[Any]:
-    if not isinstance(value, list):
-        msg = f"expected a JSON array, got {type(value).__name__} {describe(value)}"
-        raise InvalidSceneGraph(msg, field=field)
-    return value
-
-
-def as_text(value: object, field: str) -> str:
-    """A non-empty string."""
-    if not isinstance(value, str) or not value:
-        msg = f"expected a non-empty string, got {describe(value)}"
-        raise InvalidSceneGraph(msg, field=field)
-    return value
-
-
-def as_int(value: object, field: str) -> int:
-    # bool is an int in Python but never a meaningful id or layer number.
-    if isinstance(value, bool) or not isinstance(value, int):
-        msg = f"expected an integer, got {describe(value)}"
-        raise InvalidSceneGraph(msg, field=field)
-    return value
-
-
-def as_float(value: object, field: str) -> float:
-    """A finite number (JSON number, not bool, not NaN or infinity)."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        msg = f"expected a number, got {describe(value)}"
-        raise InvalidSceneGraph(msg, field=field)
-    try:
-        number = float(value)
-    except OverflowError:
-        number = math.inf
-    if not math.isfinite(number):
-        msg = f"must be a finite number (no NaN or infinity), got {describe(value)}"
-        raise InvalidSceneGraph(msg, field=field)
-    return number
-
-
-def as_vector3(value: object, field: str, *, positive: bool = False) -> list[float]:
-    """Three finite numbers (all > 0 when `positive`); errors name the whole vector."""
-    if not isinstance(value, list | tuple) or len(value) != 3:
-        msg = f"expected [x, y, z] (3 numbers), got {describe(value)}"
-        raise InvalidSceneGraph(msg, field=field)
-    try:
-        vector = [as_float(v, field) for v in value]
-    except InvalidSceneGraph as exc:
-        msg = f"expected 3 finite numbers, got {describe(value)}"
-        raise InvalidSceneGraph(msg, field=field) from exc
-    if positive and not all(v > 0 for v in vector):
-        msg = f"must be strictly positive in every axis, got {vector}"
-        raise InvalidSceneGraph(msg, field=field)
-    return vector
-
-
-def check_object_limit(count: int, max_objects: int | None) -> None:
-    if max_objects is not None and count > max_objects:
-        msg = f"the scene graph holds {count} objects, more than the limit of {max_objects}"
-        raise LimitExceeded(msg, limit_name="max_objects")
-
-
-def check_unique(ids_and_fields: Iterable[tuple[str, str]], kind: str) -> None:
-    """Raise at the second occurrence of an id, naming that occurrence's field; `kind` says what the ids
-    are ("object id")."""
-    seen: set[str] = set()
-    for item_id, field in ids_and_fields:
-        if item_id in seen:
-            msg = f"duplicate {kind} {item_id!r}"
-            raise InvalidSceneGraph(msg, field=field)
-        seen.add(item_id)
-
-
-def build_object(field: str, source_fields: Mapping[str, str] | None = None, **values: Any) -> SceneObject:
-    """`SceneObject(**values)`; errors name `source_fields[<model field>]`, else `<field>.<model field>`."""
-    try:
-        return SceneObject(**values)
-    except ValidationError as exc:
-        raise _from_validation_error(exc, field, source_fields or {}) from exc
-
-
-def build_region(field: str, source_fields: Mapping[str, str] | None = None, **values: Any) -> Region:
-    try:
-        return Region(**values)
-    except ValidationError as exc:
-        raise _from_validation_error(exc, field, source_fields or {}) from exc
-
-
-def build_scene_graph(regions: list[Region], objects: list[SceneObject], frame_id: str = "map") -> SceneGraph:
-    """Assemble a validated graph; readers check ids first, so errors here name native paths."""
-    try:
-        return SceneGraph(frame_id=frame_id, regions=regions, objects=objects)
-    except ValidationError as exc:
-        raise _from_validation_error(exc, None, {}) from exc
-
-
-def bounding_box(objects: Iterable[SceneObject]) -> tuple[list[float], list[float]]:
-    """(center, size) of the axis-aligned box around the objects' (yawed) boxes; needs >= 1 object."""
-    members = list(objects)
-    lows = [obj.min_corner for obj in members]
-    highs = [obj.max_corner for obj in members]
-    low = [min(c[axis] for c in lows) for axis in range(3)]
-    high = [max(c[axis] for c in highs) for axis in range(3)]
-    center = [float(0.5 * (lo + hi)) for lo, hi in zip(low, high, strict=True)]
-    size = [float(hi - lo) for lo, hi in zip(low, high, strict=True)]
-    return center, size
-
-
-# "objects[3].region_id: unknown region id 'r9'" -> ("objects.3.region_id", "unknown region id 'r9'")
-_MODEL_MESSAGE = re.compile(
-    r"^(?P<name>[A-Za-z_]+)(?:\[(?P<index>\d+)\])?(?P<rest>(?:\.[A-Za-z_]+)*): (?P<text>.*)$"
-)
-
-
-def _from_validation_error(
-    exc: ValidationError, prefix: str | None, source_fields: Mapping[str, str]
-) -> InvalidSceneGraph:
-    """The first pydantic error as InvalidSceneGraph, with its location as a dotted path."""
-    first = exc.errors(include_url=False)[0]
-    text = str(first.get("msg", "invalid value")).removeprefix("Value error, ")
-    loc = [str(part) for part in first.get("loc", ())]
-    if loc:
-        field = source_fields.get(loc[0]) or join_field(prefix, *loc)
-        return InvalidSceneGraph(text, field=field)
-    # A model-level check (duplicate or unknown ids) names its place at the head of the message.
-    match = _MODEL_MESSAGE.match(text)
-    if match is None:
-        return InvalidSceneGraph(text, field=prefix)
-    parts = [match["name"], *([match["index"]] if match["index"] else []), *match["rest"].split(".")[1:]]
-    return InvalidSceneGraph(match["text"], field=join_field(prefix, *parts))
 
 
 # --- detection and dispatch ------------------------------------------------------------------------------
@@ -249,8 +92,6 @@ def _guarded(read: Callable[[], SceneGraph]) -> SceneGraph:
 
 
 def _load_file(path: Path, fmt: SceneGraphFormat | str | None, max_objects: int | None) -> SceneGraph:
-    from app.scene_graph.vla3d import find_vla3d_scene_of_file, load_vla3d_scene
-
     requested = _format_or_none(fmt)
     if path.is_dir():
         _expect_format(requested, SceneGraphFormat.VLA3D, path)
@@ -269,8 +110,6 @@ def _load_file(path: Path, fmt: SceneGraphFormat | str | None, max_objects: int 
 def _parse(
     payload: bytes | str | dict[str, Any], fmt: SceneGraphFormat | str | None, max_objects: int | None
 ) -> SceneGraph:
-    from app.scene_graph.hydra import parse_spark_dsg_binary
-
     requested = _format_or_none(fmt)
     if requested is SceneGraphFormat.SPARK_DSG_BINARY:
         if not isinstance(payload, bytes | bytearray):
@@ -287,18 +126,11 @@ def _parse(
 
 
 def _read_json(data: dict[str, Any], fmt: SceneGraphFormat, max_objects: int | None) -> SceneGraph:
-    # The readers import this module's validators, so they are imported here rather than at the top.
     if fmt is SceneGraphFormat.REGION_GROUPED:
-        from app.scene_graph.region_grouped import parse_region_grouped
-
         return parse_region_grouped(data, max_objects=max_objects)
     if fmt is SceneGraphFormat.SPARK_DSG_JSON:
-        from app.scene_graph.hydra import parse_spark_dsg_json
-
         return parse_spark_dsg_json(data, max_objects=max_objects)
     if fmt is SceneGraphFormat.VLA3D:
-        from app.scene_graph.vla3d import parse_vla3d_payload
-
         return parse_vla3d_payload(data, max_objects=max_objects)
     return _parse_native(data, max_objects)
 
@@ -310,7 +142,7 @@ def _parse_native(data: dict[str, Any], max_objects: int | None) -> SceneGraph:
     try:
         return SceneGraph.model_validate(data)
     except ValidationError as exc:
-        raise _from_validation_error(exc, None, {}) from exc
+        raise from_validation_error(exc, None, {}) from exc
 
 
 def _format_or_none(fmt: SceneGraphFormat | str | None) -> SceneGraphFormat | None:

@@ -31,7 +31,7 @@ import math
 from typing import Any
 
 from app.errors import InvalidSceneGraph
-from app.scene_graph.loader import (
+from app.scene_graph.fields import (
     as_float,
     as_int,
     as_mapping,

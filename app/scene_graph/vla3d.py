@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from app.errors import InvalidSceneGraph
-from app.scene_graph.loader import (
+from app.scene_graph.fields import (
     as_list,
     as_mapping,
     as_vector3,
