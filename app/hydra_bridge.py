@@ -161,10 +161,12 @@ class SendPolicy:
 
     def offer(self, snapshot: Snapshot) -> Change | None:
         """Take the newest graph; its change from what the service holds, or None when there is none to send
-        (then any older graph waiting is dropped too: the newest wins)."""
+        (then any older graph waiting is dropped too: the newest wins). While what the service holds is
+        unknown (before the first PUT, after a failed one) every graph is sent, the empty one included."""
         change = Change.between(self.acknowledged, snapshot.scene_graph)
+        known = self.acknowledged is not None
         unsendable = self.refused is not None and not Change.between(self.refused, snapshot.scene_graph)
-        self.pending = snapshot if change and not unsendable else None
+        self.pending = snapshot if (change or not known) and not unsendable else None
         return change if self.pending is not None else None
 
     def due(self, now: float) -> Snapshot | None:

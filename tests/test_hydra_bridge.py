@@ -313,6 +313,19 @@ def test_after_a_failed_put_the_last_acknowledged_graph_is_sent_again() -> None:
     assert policy.offer(snapshot(FIRST)) is None  # acknowledged: known again
 
 
+def test_an_empty_graph_is_sent_while_what_the_service_holds_is_unknown() -> None:
+    policy = SendPolicy(min_interval_s=0.1, max_backoff_s=4.0)
+    empty = Snapshot(SceneGraph(frame_id="map", regions=[], objects=[]), b"")
+    assert policy.offer(empty) is not None and policy.due(0.0) is empty  # the first graph, though empty
+    policy.sent(empty, 0.0)
+    assert policy.offer(Snapshot(empty.scene_graph, b"")) is None  # acknowledged: nothing new
+    first = snapshot(FIRST)
+    policy.offer(first)
+    policy.failed(1.0)  # the service may hold FIRST, or still the empty graph
+    emptied = Snapshot(empty.scene_graph, b"")
+    assert policy.offer(emptied) is not None and policy.due(2.0) is emptied
+
+
 def test_a_change_is_judged_by_id_on_objects_and_regions() -> None:
     first = expected(FIRST)
     reordered = first.model_copy(update={"objects": first.objects[::-1], "frame_id": "odom"})
