@@ -12,7 +12,9 @@ LLM Prompt" and "Foundation Model Baseline Prompts"):
   "explanation"}]}``.
 
 The hypothesis prompt carries one worked example (a scene and answer made up for this project), passed as
-a user/assistant exchange before the real question.
+a user/assistant exchange before the real question. Every text a user supplied (the remark, labels, ids,
+region names, a hypothesis's wording) goes in as a JSON string literal, like the map itself, so that quotes or
+line breaks in it cannot pass for the prompt's own structure.
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ HYPOTHESIS_USER_TEMPLATE = """\
 Map (objects grouped by region):
 {scene_json}
 
-Remark: "{utterance}"
+Remark: {utterance}
 
 Give between 1 and {max_hypotheses} readings. Give just one when a single object fits the remark; add \
 readings only for other objects that fit it as well (the same kind of object elsewhere, a room the remark \
@@ -77,10 +79,10 @@ SCAFFOLDED_USER_TEMPLATE = """\
 Map (objects grouped by region):
 {scene_json}
 
-Remark: "{utterance}"
+Remark: {utterance}
 
 Reading to use: {reading}
-Region: "{region_name}" (region_id {region_id})
+Region: {region_name} (region_id {region_id})
 Anchor object(s):
 {anchors}"""
 
@@ -102,7 +104,7 @@ E2E_USER_TEMPLATE = """\
 Map (objects grouped by region):
 {scene_json}
 
-Remark: "{utterance}"
+Remark: {utterance}
 
 Give at most {max_components} components."""
 
@@ -150,6 +152,11 @@ _EXAMPLE_ANSWER = {
 }
 
 
+def quoted(text: str) -> str:
+    """A user's text as the prompts show it: one JSON string literal (see the module docstring)."""
+    return json.dumps(text, ensure_ascii=False)
+
+
 def scene_json(scene_graph: SceneGraph) -> str:
     """The map as the prompts show it: region-grouped JSON, numbers rounded (see the module docstring)."""
     grouped = to_region_grouped(scene_graph)
@@ -168,10 +175,12 @@ def hypothesis_messages(
         msg = f"max_hypotheses must be between 1 and {MAX_HYPOTHESES}, got {max_hypotheses}"
         raise ValueError(msg)
     example_question = HYPOTHESIS_USER_TEMPLATE.format(
-        scene_json=scene_json(_example_scene()), utterance=_EXAMPLE_UTTERANCE, max_hypotheses=MAX_HYPOTHESES
+        scene_json=scene_json(_example_scene()),
+        utterance=quoted(_EXAMPLE_UTTERANCE),
+        max_hypotheses=MAX_HYPOTHESES,
     )
     question = HYPOTHESIS_USER_TEMPLATE.format(
-        scene_json=scene_json(scene_graph), utterance=utterance, max_hypotheses=max_hypotheses
+        scene_json=scene_json(scene_graph), utterance=quoted(utterance), max_hypotheses=max_hypotheses
     )
     return [
         {"role": "system", "content": HYPOTHESIS_SYSTEM_PROMPT},
@@ -188,7 +197,7 @@ def scaffolded_messages(scene_graph: SceneGraph, utterance: str, hypothesis: Hyp
     region_name = scene_graph.region(region_id).name if region_id is not None else "none"
     integer_id = region_integer_ids(scene_graph).get(region_id, -1) if region_id is not None else -1
     anchor_lines = "\n".join(
-        f'- id "{o.id}": {o.label}, centre {[round(c, 3) for c in o.center]}, '
+        f"- id {quoted(o.id)}: {quoted(o.label)}, centre {[round(c, 3) for c in o.center]}, "
         f"size {[round(s, 3) for s in o.size]}"
         for o in anchors
     )
@@ -197,9 +206,9 @@ def scaffolded_messages(scene_graph: SceneGraph, utterance: str, hypothesis: Hyp
     )
     content = SCAFFOLDED_USER_TEMPLATE.format(
         scene_json=scene_json(scene_graph),
-        utterance=utterance,
-        reading=f"{reading} (relation: {hypothesis.relation.value})",
-        region_name=region_name,
+        utterance=quoted(utterance),
+        reading=f"{quoted(reading)} (relation: {hypothesis.relation.value})",
+        region_name=quoted(region_name),
         region_id=integer_id,
         anchors=anchor_lines,
     )
@@ -211,7 +220,7 @@ def e2e_messages(
 ) -> list[Message]:
     """The whole-mixture question of the LLM-E2E baseline."""
     content = E2E_USER_TEMPLATE.format(
-        scene_json=scene_json(scene_graph), utterance=utterance, max_components=max_components
+        scene_json=scene_json(scene_graph), utterance=quoted(utterance), max_components=max_components
     )
     return [{"role": "system", "content": E2E_SYSTEM_PROMPT}, {"role": "user", "content": content}]
 
