@@ -7,8 +7,19 @@ import json
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from fastapi import Query
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Strict, Tag, TypeAdapter
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    GetJsonSchemaHandler,
+    Strict,
+    Tag,
+    TypeAdapter,
+)
 from pydantic.config import JsonDict
+from pydantic.json_schema import JsonSchemaValue
+from pydantic_core import CoreSchema
 
 from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_VOXEL_SIZE_M
 from app.belief.session import DEFAULT_FALSE_POSITIVE_RATE, DEFAULT_TRUE_POSITIVE_RATE, SensorModel
@@ -40,9 +51,23 @@ def _scene_graph_kind(value: Any) -> str:
     return "other"
 
 
+class _AnyOf:
+    """Writes a union's schema as anyOf. The callable discriminator makes pydantic write oneOf, but a
+    native graph is also a JSON object, so under oneOf a validator would refuse every native graph."""
+
+    def __get_pydantic_json_schema__(
+        self, core: CoreSchema, handler: GetJsonSchemaHandler
+    ) -> JsonSchemaValue:
+        schema = handler(core)
+        if "oneOf" in schema:
+            schema["anyOf"] = schema.pop("oneOf")
+        return schema
+
+
 SceneGraphPayload = Annotated[
     Annotated[SceneGraph, Tag("native")] | Annotated[dict[str, Any], Tag("other")],
     Discriminator(_scene_graph_kind),
+    _AnyOf(),
     Field(
         description=(
             "The map: a native SceneGraph, or another JSON scene-graph format that the service "
