@@ -553,6 +553,17 @@ def test_detection_of_each_format() -> None:
     raises_invalid(paper_example(), "format", fmt="hydra")
 
 
+def test_a_native_graph_needs_none_of_its_optional_fields() -> None:
+    """"objects" is optional in a native graph (the spec says so), so its other fields mark it too."""
+    regions_only = {"frame_id": "map", "regions": [native_example()["regions"][0]]}
+    for graph in (regions_only, {"frame_id": "odom"}, {"regions": []}):
+        assert detect_format(graph) is SceneGraphFormat.NATIVE
+        assert parse_scene_graph(graph) == SceneGraph.model_validate(graph)
+    # Region-grouped maps whose rooms bear those names hold dicts, never a list or a string.
+    assert detect_format({"regions": {"objects": {}, "region_id": 0}}) is SceneGraphFormat.REGION_GROUPED
+    assert detect_format({"frame_id": {"objects": {}, "region_id": 0}}) is SceneGraphFormat.REGION_GROUPED
+
+
 def with_change(base: dict[str, Any], path: str, value: Any) -> dict[str, Any]:
     """A deep copy of `base` with the value at dotted `path` replaced (or deleted when value is ...)."""
     data = copy.deepcopy(base)

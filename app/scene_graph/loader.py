@@ -201,6 +201,16 @@ def _parse_json_object(text: str) -> dict[str, Any]:
     return as_mapping(data, None)
 
 
+def _looks_native(data: dict[str, Any]) -> bool:
+    """A native graph has "objects" (a list when valid), or at least one of its other fields, "regions" (a
+    list) or "frame_id" (a string): all three are optional. A region-grouped map's values are all
+    objects, so a region named "objects", "regions" or "frame_id" holds a dict with its own "objects"."""
+    objects = data.get("objects")
+    if "objects" in data:
+        return not (isinstance(objects, dict) and "objects" in objects)
+    return isinstance(data.get("regions"), list) or isinstance(data.get("frame_id"), str)
+
+
 def _detect_decoded(decoded: bytes | dict[str, Any]) -> SceneGraphFormat:
     if isinstance(decoded, bytes):
         return SceneGraphFormat.SPARK_DSG_BINARY
@@ -210,9 +220,7 @@ def _detect_decoded(decoded: bytes | dict[str, Any]) -> SceneGraphFormat:
         return SceneGraphFormat.SPARK_DSG_JSON
     if "object_result_csv" in decoded:
         return SceneGraphFormat.VLA3D
-    objects = decoded.get("objects", None)
-    # A region called "objects" holds a dict with its own "objects"; the native format holds a list.
-    if "objects" in decoded and not (isinstance(objects, dict) and "objects" in objects):
+    if _looks_native(decoded):
         return SceneGraphFormat.NATIVE
     if all(isinstance(region, dict) and "objects" in region for region in decoded.values()):
         return SceneGraphFormat.REGION_GROUPED
