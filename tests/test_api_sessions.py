@@ -137,6 +137,58 @@ def test_json_and_msgpack_batches_give_identical_beliefs(client: TestClient, two
     np.testing.assert_array_equal(_grid(client, a["id"], True)["vis"], _grid(client, b["id"], True)["vis"])
 
 
+def test_points_on_voxel_faces_give_the_same_belief_as_json_and_through_the_client_encoder(
+    client: TestClient, two_rooms: dict
+) -> None:
+    """Points on voxel faces, as float64: rounded to float32 some would fall in the neighbouring voxel."""
+    rng = np.random.default_rng(5)
+    a = _create(client, two_rooms, target_label="backpack", label_map={"0": "floor", "1": "backpack"})
+    b = _create(client, two_rooms, target_label="backpack", label_map={"0": "floor", "1": "backpack"})
+    shape = np.array(a["grid"]["shape"])
+    faces = rng.integers(1, shape, size=(500, 3))
+    points = np.asarray(a["grid"]["min_corner"]) + faces * a["grid"]["voxel_size"]
+    labels = rng.integers(0, 2, size=500)
+    assert not np.array_equal(points.astype(np.float32).astype(np.float64), points)
+    r1 = client.post(
+        f"/v1/sessions/{a['id']}/observations", json={"points": points.tolist(), "labels": labels.tolist()}
+    )
+    r2 = client.post(
+        f"/v1/sessions/{b['id']}/observations",
+        content=encode_msgpack_batch(points=points, labels=labels),
+        headers={"content-type": "application/msgpack"},
+    )
+    assert r1.status_code == r2.status_code == 200, (r1.text, r2.text)
+    np.testing.assert_array_equal(_grid(client, a["id"], True)["vis"], _grid(client, b["id"], True)["vis"])
+
+
+def test_a_batch_sensor_model_overrides_only_the_rates_it_gives(client: TestClient, two_rooms: dict) -> None:
+    """{"tp": 0.9} keeps the session's fp, in JSON as in msgpack."""
+    voxels, labels = [[4, 4, 4], [5, 5, 5], [6, 6, 6]], [1, 0, 1]
+    beliefs = []
+    for encoding, sensor_model in (
+        ("json", {"tp": 0.9}),
+        ("msgpack", {"tp": 0.9}),
+        ("json", {"tp": 0.9, "fp": 0.3}),
+    ):
+        session = _create(
+            client,
+            two_rooms,
+            target_label="backpack",
+            label_map={"0": "floor", "1": "backpack"},
+            sensor_model={"tp": 0.8, "fp": 0.3},
+        )
+        url = f"/v1/sessions/{session['id']}/observations"
+        if encoding == "json":
+            answer = client.post(url, json={"voxels": voxels, "labels": labels, "sensor_model": sensor_model})
+        else:
+            packed = encode_msgpack_batch(voxels=np.array(voxels), labels=np.array(labels), **sensor_model)
+            answer = client.post(url, content=packed, headers={"content-type": "application/msgpack"})
+        assert answer.status_code == 200, answer.text
+        beliefs.append(_grid(client, session["id"], True)["vis"])
+    np.testing.assert_array_equal(beliefs[0], beliefs[2])
+    np.testing.assert_array_equal(beliefs[1], beliefs[2])
+
+
 def test_a_msgpack_sensor_model_that_is_no_map_is_refused(client: TestClient, two_rooms: dict) -> None:
     session = _create(client, two_rooms, target_label="backpack", label_map={"1": "backpack"})
     points = np.asarray(session["grid"]["min_corner"]) + 0.5 * session["grid"]["voxel_size"]

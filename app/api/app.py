@@ -37,6 +37,7 @@ from app.api.schemas import (
     ObservationBatchJson,
     PackedArray,
     SensorModelIn,
+    SensorModelOverride,
     SessionCreate,
     UtteranceIn,
 )
@@ -64,6 +65,7 @@ _RAW_BODY_MODELS = (
     ObservationBatchJson,
     PackedArray,
     SensorModelIn,
+    SensorModelOverride,
 )
 
 

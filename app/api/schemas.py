@@ -286,6 +286,15 @@ class SensorModelIn(BaseModel):
     fp: float = Field(default=DEFAULT_FALSE_POSITIVE_RATE, gt=0.0, lt=1.0)
 
 
+class SensorModelOverride(BaseModel):
+    """One batch's tp and/or fp; a rate left out keeps the session's."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    tp: float | None = Field(default=None, gt=0.0, lt=1.0)
+    fp: float | None = Field(default=None, gt=0.0, lt=1.0)
+
+
 LabelIdText = Annotated[str, Field(pattern=r"^[0-9]{1,10}$", description="A uint32 label id, in decimal.")]
 ClassName = Annotated[str, Field(min_length=1, max_length=MAX_LABEL_CHARS)]
 LabelName = Annotated[str, Field(max_length=MAX_LABEL_CHARS)]
@@ -596,8 +605,9 @@ class ObservationBatchJson(BaseModel):
         fail_fast=True,
         description="Detector probability that each voxel holds the target (instead of labels).",
     )
-    sensor_model: SensorModelIn | None = Field(
-        default=None, description="Overrides the session's for this batch."
+    sensor_model: SensorModelOverride | None = Field(
+        default=None,
+        description="Overrides the session's for this batch; a rate left out keeps the session's.",
     )
 
 

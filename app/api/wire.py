@@ -236,7 +236,7 @@ OBSERVATION_REQUEST_BODY = {
                         ]
                     },
                     "p_target": {"$ref": "#/components/schemas/PackedArray"},
-                    "sensor_model": {"$ref": "#/components/schemas/SensorModelIn"},
+                    "sensor_model": {"$ref": "#/components/schemas/SensorModelOverride"},
                 },
             }
         },

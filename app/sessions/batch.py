@@ -67,20 +67,28 @@ def encode_msgpack_batch(
     tp: float | None = None,
     fp: float | None = None,
 ) -> bytes:
-    """The msgpack body for a batch: int32 voxels or float32 points, uint32 ids or names, float32 p_target."""
+    """The msgpack body for a batch: int32 voxels or points, uint32 ids or names, or p_target. Points and
+    p_target go at the precision given: float32 arrays (a sensor's) as float32, anything else as float64,
+    so that the same numbers give the same belief as a JSON batch (a point rounded to float32 near a voxel
+    face can fall in the neighbouring voxel)."""
     envelope: dict[str, Any] = {"stamp": stamp}
     if voxels is not None:
         envelope["voxels"] = pack_array(np.asarray(voxels, dtype=np.int32).reshape(-1, 3))
     if points is not None:
-        envelope["points"] = pack_array(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        envelope["points"] = pack_array(_floats(points).reshape(-1, 3))
     if labels is not None:
         arr = np.asarray(labels)
         envelope["labels"] = (
             [str(x) for x in arr] if arr.dtype.kind in "US" else pack_array(arr.astype(np.uint32))
         )
     if p_target is not None:
-        envelope["p_target"] = pack_array(np.asarray(p_target, dtype=np.float32))
+        envelope["p_target"] = pack_array(_floats(p_target))
     if tp is not None or fp is not None:
         envelope["sensor_model"] = {k: v for k, v in (("tp", tp), ("fp", fp)) if v is not None}
     packed: bytes = msgpack.packb(envelope, use_bin_type=True)
     return packed
+
+
+def _floats(values: np.ndarray) -> np.ndarray:
+    array = np.asarray(values)
+    return array if array.dtype == np.float32 else array.astype(np.float64)
