@@ -19,7 +19,8 @@ from app.grounding.geometric import GeometricGrounder
 from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis
 from app.grounding.lexical import LexicalProposer
 from app.grounding.mixture import Gaussian, GaussianMixture, UniformBox, map_box
-from app.grounding.sensor import LanguageSensor
+from app.grounding.relations import Relation
+from app.grounding.sensor import LanguageSensor, merged_tail
 from app.scene_graph.model import SceneGraph
 from app.settings import Settings
 from tests.conftest import model_free_settings
@@ -145,6 +146,31 @@ def test_caller_hypotheses_are_grounded_as_given(client: TestClient, scene_graph
         ([desk], "near", 1.0)
     ]
     assert "proposer" not in body["timings_ms"]
+
+
+def test_caller_weights_are_relative_even_near_the_float_maximum(
+    client: TestClient, scene_graph_dict: dict
+) -> None:
+    tables = [o["id"] for o in scene_graph_dict["objects"] if o["label"] == "table"][:2]
+    options = {"hypotheses": [{"anchor_ids": [t], "relation": "on", "weight": 1e308} for t in tables]}
+    response = _ground(client, scene_graph_dict, "my bag is on the table", options=options)
+    assert response.status_code == 200, response.text
+    assert [h["weight"] for h in response.json()["hypotheses"]] == pytest.approx([0.5, 0.5])
+
+
+def test_the_merged_tail_names_its_heaviest_relation_ties_going_to_the_first(scene_graph_dict: dict) -> None:
+    scene_graph = SceneGraph.model_validate(scene_graph_dict)
+    anchors = [o.id for o in scene_graph.objects[:4]]
+    for first, second in (
+        (Relation.ON, Relation.NEAR),
+        (Relation.NEAR, Relation.ON),
+        (Relation.IN, Relation.ABOVE),
+    ):
+        group = [
+            Hypothesis((a,), relation, 0.25) for a, relation in zip(anchors, (first, second) * 2, strict=True)
+        ]
+        ((merged, _),) = merged_tail(scene_graph, group, map_box(scene_graph))
+        assert merged.relation is first
 
 
 @pytest.mark.parametrize(

@@ -94,6 +94,15 @@ def test_box_slices_select_exactly_the_centres_inside_the_box() -> None:
     np.testing.assert_array_equal(mask.ravel(), inside)
 
 
+def test_box_slices_of_a_box_far_beyond_the_grid_select_every_voxel() -> None:
+    grid = VoxelGrid((0.0, 0.0, 0.0), (10, 8, 6), 0.1)
+    for half in (1e3, 1e18, 1e30):
+        sl = grid.box_slices(np.full(3, -half), np.full(3, half))
+        assert [(s.start, s.stop) for s in sl] == [(0, 10), (0, 8), (0, 6)]
+    beyond = grid.box_slices(np.full(3, 1e30), np.full(3, 2e30))
+    assert all(s.start == s.stop for s in beyond)
+
+
 # -- language -------------------------------------------------------------------------------------------
 
 

@@ -554,7 +554,7 @@ def test_detection_of_each_format() -> None:
 
 
 def test_a_native_graph_needs_none_of_its_optional_fields() -> None:
-    """"objects" is optional in a native graph (the spec says so), so its other fields mark it too."""
+    """ "objects" is optional in a native graph (the spec says so), so its other fields mark it too."""
     regions_only = {"frame_id": "map", "regions": [native_example()["regions"][0]]}
     for graph in (regions_only, {"frame_id": "odom"}, {"regions": []}):
         assert detect_format(graph) is SceneGraphFormat.NATIVE

@@ -133,11 +133,15 @@ class VoxelGrid:
     def box_slices(self, low: np.ndarray, high: np.ndarray) -> tuple[slice, slice, slice]:
         """Index ranges of the voxels whose centres lie in the closed box [low, high] (possibly empty)."""
         # origin + (i + 1/2) s in [low, high]  <=>  (low - origin)/s - 1/2 <= i <= (high - origin)/s - 1/2
-        origin = np.asarray(self.origin)
-        first = np.ceil((np.asarray(low) - origin) / self.voxel_size - 0.5).astype(np.int64)
-        last = np.floor((np.asarray(high) - origin) / self.voxel_size - 0.5).astype(np.int64)
-        first = np.clip(first, 0, self.shape)
-        stop = np.clip(last + 1, first, self.shape)
+        origin, shape = np.asarray(self.origin), np.asarray(self.shape)
+        # Clipped while still floats: a box far beyond the grid would overflow int64 (and select nothing).
+        first = np.clip(np.ceil((np.asarray(low) - origin) / self.voxel_size - 0.5), 0, shape).astype(
+            np.int64
+        )
+        last = np.clip(np.floor((np.asarray(high) - origin) / self.voxel_size - 0.5), -1, shape).astype(
+            np.int64
+        )
+        stop = np.clip(last + 1, first, shape)
         return (
             slice(int(first[0]), int(stop[0])),
             slice(int(first[1]), int(stop[1])),

@@ -157,8 +157,14 @@ class LanguageSensor:
                 msg = f"unknown object id(s) {unknown}"
                 raise InvalidInput(msg, field=where)
         parse = parse_utterance(utterance, tuple(r.name for r in scene_graph.regions))
+        # Relative weights, scaled to a largest of 1: weights near the float maximum would sum to infinity.
+        heaviest = max((h.weight for h in hypotheses), default=1.0)
         filled = tuple(
-            replace(h, region_id=h.region_id or scene_graph.object(h.anchor_ids[0]).region_id)
+            replace(
+                h,
+                weight=h.weight / heaviest,
+                region_id=h.region_id or scene_graph.object(h.anchor_ids[0]).region_id,
+            )
             for h in hypotheses
         )
         return Proposal(parse, filled, background=0.0)
@@ -214,8 +220,10 @@ def merged_tail(
         )
         density = GaussianMixture.of(Gaussian(rough.mean(), rough.covariance()))
         anchor_ids = tuple(dict.fromkeys(a for h in group for a in h.anchor_ids))
+        # Ties go to the relation first seen (the heaviest reading's): a set's order varies between processes.
         relation = max(
-            {h.relation for h in group}, key=lambda r: sum(h.weight for h in group if h.relation is r)
+            dict.fromkeys(h.relation for h in group),
+            key=lambda r: sum(h.weight for h in group if h.relation is r),
         )
         text = f"{len(group)} more readings" + (f" in region {region_id}" if region_id else "")
         out.append((Hypothesis(anchor_ids, relation, float(weights.sum()), region_id, text), density))
