@@ -774,6 +774,23 @@ def test_cli_lsm_without_weights_fails_clearly(tmp_path: Path) -> None:
     assert not (tmp_path / "out").exists()
 
 
+def test_cli_a_malformed_case_line_stops_the_run_before_any_grounding(tmp_path: Path) -> None:
+    lines = CASES.read_text(encoding="utf-8").splitlines()
+    broken = tmp_path / "cases.jsonl"
+    broken.write_text("\n".join([*lines[:2], '{"case_id": "x"', *lines[2:]]) + "\n", encoding="utf-8")
+    with pytest.raises(SystemExit) as exc:
+        run_cli("--grounder", "fixed", "--cases", str(broken), "--out", str(tmp_path / "out"))
+    assert f"{broken}:3: not a grounding case" in str(exc.value)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(("option", "value"), [("--seed", "-1"), ("--hdr-samples", "10")])
+def test_cli_a_bad_number_is_named(tmp_path: Path, option: str, value: str) -> None:
+    with pytest.raises(SystemExit) as exc:
+        run_cli("--grounder", "fixed", option, value, "--out", str(tmp_path / "out"))
+    assert f"{option} must be >= " in str(exc.value) and f"got {value}" in str(exc.value)
+
+
 @pytest.mark.parametrize(
     "choice", [("--proposer", "llm"), ("--grounder", "scaffolded-llm"), ("--grounder", "llm-e2e")]
 )

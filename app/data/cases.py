@@ -16,6 +16,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from app.errors import InvalidInput
 from app.files import atomic_write
 from app.grounding.relations import Relation
 from app.scene_graph.model import SceneGraph, Vec3
@@ -66,7 +67,7 @@ def read_cases(path: str | Path) -> Iterator[GroundingCase]:
                 yield GroundingCase.model_validate_json(line)
             except ValueError as exc:
                 msg = f"{path}:{number}: not a grounding case: {exc}"
-                raise ValueError(msg) from exc
+                raise InvalidInput(msg, field=f"{path}:{number}") from exc
 
 
 def write_cases(path: str | Path, cases: Iterable[GroundingCase]) -> int:

@@ -81,9 +81,10 @@ import math
 import os
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
+from itertools import islice
 from pathlib import Path
 from typing import Any
 
@@ -751,18 +752,6 @@ def method_names(grounder: str, baselines: bool) -> list[str]:
     return names
 
 
-def _limited(cases: Iterator[GroundingCase], max_cases: int | None) -> Iterator[GroundingCase]:
-    for index, case in enumerate(cases):
-        if max_cases is not None and index >= max_cases:
-            return
-        yield case
-
-
-def _count_lines(path: Path) -> int:
-    with path.open("rb") as fh:
-        return sum(1 for line in fh if line.strip())
-
-
 def run_static(options: StaticOptions) -> StaticEvaluation:
     """Build the proposer and grounders (errors here are setup errors: no endpoint, no LSM) and evaluate.
 
@@ -772,12 +761,17 @@ def run_static(options: StaticOptions) -> StaticEvaluation:
     if options.max_cases is not None and options.max_cases < 1:
         msg = f"--max-cases must be >= 1, got {options.max_cases}"
         raise InvalidInput(msg, field="--max-cases")
-    if options.seed < 0 or options.hdr_samples < 100:
-        msg = "--seed must be >= 0 and --hdr-samples >= 100"
+    if options.seed < 0:
+        msg = f"--seed must be >= 0, got {options.seed}"
         raise InvalidInput(msg, field="--seed")
+    if options.hdr_samples < 100:
+        msg = f"--hdr-samples must be >= 100, got {options.hdr_samples}"
+        raise InvalidInput(msg, field="--hdr-samples")
     if not options.cases.is_file():
         msg = f"no cases file at {options.cases}"
         raise InvalidInput(msg, field="--cases")
+    # Read whole before anything is built or grounded: a bad line stops the run at once, with its number.
+    cases = list(islice(read_cases(options.cases), options.max_cases))
     fallbacks: Counter[str] = Counter()
     with ExitStack() as stack:
         proposer = make_proposer(
@@ -791,17 +785,14 @@ def run_static(options: StaticOptions) -> StaticEvaluation:
             make_grounder(name, options.llm, stack, options.model_dir)
             for name in method_names(options.grounder, options.baselines)
         ]
-        total = _count_lines(options.cases)
-        if options.max_cases is not None:
-            total = min(total, options.max_cases)
         result = evaluate_static(
-            _limited(read_cases(options.cases), options.max_cases),
+            cases,
             grounders,
             proposer,
             seed=options.seed,
             hdr_samples=options.hdr_samples,
             progress=options.progress,
-            total=total,
+            total=len(cases),
         )
     config: dict[str, Any] = {
         "cases": str(options.cases),
