@@ -8,6 +8,7 @@ import math
 import shutil
 from collections import Counter, defaultdict
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +37,7 @@ from app.sim.noise import LabelNoise
 from app.sim.perception import PerceptionConfig
 from app.sim.policy import trajectory
 from app.sim.report import main as report_main
-from app.sim.report import render_table
+from app.sim.report import metrics_document, render_table
 from app.sim.runner import (
     PreparedEpisode,
     SimConfig,
@@ -441,6 +442,30 @@ def test_every_method_gets_the_same_episodes(service_url: str) -> None:
         free_id = next(int(k) for k, name in client.created[session]["label_map"].items() if name == "free")
         occupied += sum(int(np.count_nonzero(labels != free_id)) for _, labels in client.batches[session])
     assert result.rates.summary()["voxels"] == occupied
+
+
+def test_a_refused_utterance_is_not_fused_and_an_unreadable_one_skips_its_episode(service_url: str) -> None:
+    """An utterance about another class is grounded but not fused (the episode runs on vision alone); one
+    over the service's length limit skips the episode, which leaves no record, and the next one runs."""
+    first, second = load_episodes(CASES)[:2]
+    other_class = replace(first, utterance="the laptop is on the table")
+    long_utterance = "my bag is " + "very " * 250 + "near the table"
+    too_long = replace(first, episode_id=f"{first.episode_id}-long", utterance=long_utterance)
+    config = SimConfig(n_steps=2, n_checkpoints=2)
+    with VLMapClient(service_url) as client:
+        result = run_simulation(
+            client, [other_class, too_long, second], 2, ["vision-only", "fixed"], config, progress=False
+        )
+        assert client.list_sessions() == []
+    assert [r.episode_id for r in result.records] == [first.episode_id, second.episode_id]
+    assert result.skips == {"utterance_refused": 1}
+    refused = result.records[0].runs
+    assert refused["fixed"].grounded is True and refused["fixed"].fused is False
+    assert refused["fixed"].outcome.mass == refused["vision-only"].outcome.mass
+    assert result.records[1].runs["fixed"].fused is True
+    doc = metrics_document(result, aggregate(result.outcomes, result.methods), SUCCESS_MASS)
+    grounded = [r.runs["fixed"].grounded for r in result.records]
+    assert doc["grounded_pct"] == {"fixed": 50.0 * sum(grounded)} and doc["fused_pct"] == {"fixed": 50.0}
 
 
 def test_missing_grounders_and_proposers_are_named(service_url: str) -> None:

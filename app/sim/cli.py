@@ -293,8 +293,9 @@ def measure_rates(
 
 def service_env(methods: Sequence[str]) -> dict[str, str]:
     """Environment of the service `vlmap sim` starts: the default grounders plus those the methods need, no
-    rate limit. SimError when the LSM's weights or the LLM endpoint the methods need are missing."""
-    from app.settings import Settings
+    rate limit, utterances as long as the service can read (a case file has no length limit, and `vlmap eval
+    static` grounds any). SimError when the LSM's weights or the LLM endpoint the methods need are missing."""
+    from app.settings import MAX_UTTERANCE_CHARS_CEILING, Settings
     from app.sim.runner import LLM_METHODS, SimError, needed_parts
 
     settings = Settings()
@@ -309,4 +310,8 @@ def service_env(methods: Sequence[str]) -> dict[str, str]:
         )
         raise SimError(msg)
     builtin = sorted((grounders - set(LLM_METHODS)) | set(settings.grounders))
-    return {"VLMAP_GROUNDERS": json.dumps(builtin), "VLMAP_RATE_LIMIT_PER_S": "0"}
+    return {
+        "VLMAP_GROUNDERS": json.dumps(builtin),
+        "VLMAP_RATE_LIMIT_PER_S": "0",
+        "VLMAP_MAX_UTTERANCE_CHARS": str(MAX_UTTERANCE_CHARS_CEILING),
+    }

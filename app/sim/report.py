@@ -15,7 +15,7 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from app.files import atomic_write, write_text_atomic
 from app.sim.metrics import SplitMetrics, aggregate
@@ -88,9 +88,14 @@ def metrics_document(
                 "skipped": dict(sorted(result.skips.items())),
             },
             "grounded_pct": {
-                method: _grounded_pct(result, method)
+                method: _pct(result, method, "grounded")
                 for method in result.methods
                 if any(r.runs[method].grounded is not None for r in result.records)
+            },
+            "fused_pct": {
+                method: _pct(result, method, "fused")
+                for method in result.methods
+                if any(r.runs[method].fused is not None for r in result.records)
             },
             "timing_s": {k: round(v, 3) for k, v in sorted(result.seconds.items())},
             "metrics": {
@@ -143,8 +148,10 @@ def setting_line(document: dict[str, Any]) -> str:
     return f"Setting: {perception}. Language: {'; '.join(parts) or 'none'}."
 
 
-def _grounded_pct(result: SimResult, method: str) -> float | None:
-    flags = [r.runs[method].grounded for r in result.records]
+def _pct(result: SimResult, method: str, flag: Literal["grounded", "fused"]) -> float | None:
+    """The share of episodes whose utterance the grounder grounded, or the session fused (a session refuses
+    one whose target names another class: such an episode runs on vision alone)."""
+    flags = [getattr(r.runs[method], flag) for r in result.records]
     return 100.0 * sum(bool(f) for f in flags) / len(flags) if flags else None
 
 

@@ -24,8 +24,9 @@ Per episode and method (`run_method`):
 5. DELETE the session.
 
 Skipped episodes (counted by reason, never run): too little free floor for the robot (`min_free_floor_m2`),
-a target with no voxel on the service's grid, a grid beyond the voxel limit, or no utterance while a
-language method is compared.
+a target with no voxel on the service's grid, a grid beyond the voxel limit, no utterance while a
+language method is compared, or an utterance the service refuses to read (a 413 or 422: over its length
+limit); an episode skipped half-way through its methods leaves no record.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from app.belief.grid import DEFAULT_MARGIN_M, DEFAULT_VOXEL_SIZE_M, VoxelGrid
-from app.client import VLMapClient
+from app.client import VLMapClient, VLMapHTTPError
 from app.errors import LimitExceeded
 from app.sim.camera import Camera, CameraConfig
 from app.sim.metrics import EpisodeOutcome, box_distance, target_mass
@@ -340,6 +341,8 @@ class MethodRun:
 
     outcome: EpisodeOutcome
     grounded: bool | None  # the grounding's own flag; None without an utterance
+    # whether the session fused it (not when its target names another class); None without an utterance
+    fused: bool | None
     seconds: dict[str, float]  # observations (POSTs), grid reads, setup (create, utterance, delete)
 
 
@@ -405,15 +408,21 @@ def run_method(
 
     try:
         check_session_grid(session, grid)
-        grounded = None
+        grounded = fused = None
         if options is None:
             belief, _ = watch.call("setup", client.get_belief, session_id)
             summary = belief["summary"]
         else:
-            answer = watch.call(
-                "setup", client.send_utterance, session_id, episode.utterance, options=options
-            )
-            grounded = bool(answer["grounding"]["grounded"])
+            try:
+                answer = watch.call(
+                    "setup", client.send_utterance, session_id, episode.utterance, options=options
+                )
+            except VLMapHTTPError as exc:
+                if exc.status not in (413, 422):
+                    raise
+                reason = "utterance_refused"
+                raise EpisodeSkipped(reason, f"{episode.episode_id}: {exc}") from None
+            grounded, fused = bool(answer["grounding"]["grounded"]), bool(answer["fused"])
             summary = answer["belief"]["summary"]
         record(0, summary)
         for step, frame in enumerate(prepared.frames, start=1):
@@ -438,7 +447,7 @@ def run_method(
         mass=tuple(masses),
         argmax_distance=tuple(distances),
     )
-    return MethodRun(outcome=outcome, grounded=grounded, seconds=watch.seconds)
+    return MethodRun(outcome=outcome, grounded=grounded, fused=fused, seconds=watch.seconds)
 
 
 def available_models(client: VLMapClient, role: str = "grounder") -> list[str]:
@@ -503,6 +512,7 @@ class EpisodeRecord:
             "methods": {
                 method: {
                     "grounded": run.grounded,
+                    "fused": run.fused,
                     "progress": list(run.outcome.progress),
                     "target_mass": list(run.outcome.mass),
                     "information_gain": run.outcome.information_gain.tolist(),
@@ -568,8 +578,16 @@ def run_simulation(
                 upcoming = pool.submit(next, stream, None) if wanted_more else None
                 for kind, seconds in prepared.seconds.items():
                     result.seconds[kind] += seconds
+                try:
+                    record = _run_episode(client, prepared, methods, config, result, bar)
+                except EpisodeSkipped as exc:
+                    result.skips[exc.reason] += 1
+                    log.debug("skipped %s", exc)
+                    if upcoming is None:
+                        upcoming = pool.submit(next, stream, None)
+                    continue
                 result.rates.add(prepared.rates)
-                result.records.append(_run_episode(client, prepared, methods, config, result, bar))
+                result.records.append(record)
         finally:
             if upcoming is not None:
                 upcoming.cancel()
