@@ -107,18 +107,29 @@ def test_box_slices_of_a_box_far_beyond_the_grid_select_every_voxel() -> None:
 
 
 def loop_term(mixture: GaussianMixture) -> np.ndarray:
-    """log(p(c_i) V) voxel by voxel, relative to its best voxel (what `language_log_likelihood` returns)."""
+    """log(p(c_i) V) voxel by voxel, relative to its best voxel (what `centre_log_likelihood` returns)."""
     term = np.zeros(GRID.n_voxels)
     for flat, centre in loop_centers(GRID):
         term[flat] = float(mixture.logpdf(centre[None, :])[0]) + math.log(GRID.voxel_volume)
     return term - term.max()
 
 
+def loop_mass(grid: VoxelGrid, mixture: GaussianMixture, k: int) -> np.ndarray:
+    """log of each voxel's mass by the midpoint rule on k^3 sub-voxels, voxel by voxel (unnormalised)."""
+    offsets = ((np.arange(k) + 0.5) / k - 0.5) * grid.voxel_size
+    sub = np.stack(np.meshgrid(offsets, offsets, offsets, indexing="ij"), axis=-1).reshape(-1, 3)
+    term = np.zeros(grid.n_voxels)
+    for flat, centre in loop_centers(grid):
+        density = np.exp(mixture.logpdf(centre + sub))
+        term[flat] = math.log(float(density.sum()) * grid.voxel_volume / k**3)
+    return term
+
+
 def test_language_log_likelihood_matches_the_mixture_logpdf_at_each_centre() -> None:
     """Up to the constant the layer ignores, within float32 (tests/test_fusion_support.py: larger grids)."""
     rng = np.random.default_rng(0)
     mixture = random_mixture(rng, 3, np.array([1.0, 0.5, 0.8]), 0.5, 0.3)
-    got = fusion.language_log_likelihood(GRID, mixture)
+    got = fusion.centre_log_likelihood(GRID, mixture)
     np.testing.assert_allclose(got, loop_term(mixture), rtol=0, atol=1e-5)
 
 
@@ -131,7 +142,7 @@ def test_language_with_one_live_component_matches_the_logpdf() -> None:
     mixture = GaussianMixture(
         np.array([1.0, 0.0]), np.stack([g1.mean, g2.mean]), np.stack([g1.covariance, g2.covariance])
     )
-    got = fusion.language_log_likelihood(GRID, mixture)
+    got = fusion.centre_log_likelihood(GRID, mixture)
     np.testing.assert_allclose(got, loop_term(GaussianMixture.of(g1)), rtol=0, atol=1e-5)
 
 
@@ -142,14 +153,60 @@ def test_utterances_add_up_and_the_posterior_is_their_softmax() -> None:
     total = np.zeros(GRID.n_voxels)
     for version, mixture in enumerate(mixtures, start=1):
         assert belief.apply_utterance(mixture) == version
-        for flat, centre in loop_centers(GRID):
-            total[flat] += float(mixture.logpdf(centre[None, :])[0]) + math.log(GRID.voxel_volume)
+        total += loop_mass(GRID, mixture, fusion.subsamples(GRID, mixture))
     assert total.max() - total.min() < fusion.LANG_LOG_SPAN  # no clamping in this test
     np.testing.assert_allclose(belief.lang, total - total.max(), atol=1e-5)
     assert belief.lang.max() == 0.0
     weights = [math.exp(v) for v in total]
     expected = [w / sum(weights) for w in weights]
     np.testing.assert_allclose(belief.posterior(), expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize("voxel_size", [0.3, 0.5, 1.0, 2.0])
+def test_on_a_coarse_grid_each_reading_keeps_its_mass_wherever_its_mean_lies(voxel_size: float) -> None:
+    """Two readings of weight 1/2, sigma 0.12 m, one mean on a voxel centre and one on a voxel corner: the
+    centre's density alone gave the first 0.63 of the mass on 0.3 m voxels and all of it on 1 m voxels."""
+    n = max(6, round(6.0 / voxel_size))  # both means at least a metre inside the grid
+    grid = VoxelGrid(origin=(-1.0, -1.0, -1.0), shape=(n, 3, 3), voxel_size=voxel_size)
+    on_centre = grid.centers(np.array([grid.ijk_to_flat(np.array([1, 1, 1]))]))[0]
+    on_centre[0] = -1.0 + voxel_size * (math.ceil(1.0 / voxel_size) + 0.5)
+    on_corner = np.array(
+        [-1.0 + voxel_size * (n - math.ceil(1.0 / voxel_size) - 1), -1.0 + voxel_size, -1.0 + voxel_size]
+    )
+    covariance = 0.12**2 * np.eye(3)
+    mixture = GaussianMixture.from_components(
+        [0.5, 0.5], [Gaussian(on_centre, covariance), Gaussian(on_corner, covariance)]
+    )
+    assert fusion.subsamples(grid, mixture) > 1
+    belief = BeliefState(grid)
+    belief.apply_utterance(mixture)
+    posterior = belief.posterior()
+    nearer_the_first = grid.centers()[:, 0] < 0.5 * (on_centre[0] + on_corner[0])
+    assert posterior[nearer_the_first].sum() == pytest.approx(0.5, abs=0.01)
+
+
+def test_a_coarse_grid_sums_the_mass_over_sub_voxels_and_a_fine_one_reads_the_centre() -> None:
+    rng = np.random.default_rng(6)
+    coarse = VoxelGrid(origin=(-0.4, -0.6, 0.0), shape=(6, 5, 3), voxel_size=0.4)
+    tight = random_mixture(rng, 2, np.array([0.6, 0.3, 0.5]), 0.3, 0.05)  # sigma 0.22-0.3 m
+    box = UniformBox(np.array([0.1, 0.2, 0.3]), np.array([0.2, 0.6, 0.5]))  # 0.1 m wide
+    mixture = GaussianMixture.from_components(
+        list(tight.weights / 2),
+        [Gaussian(m, c) for m, c in zip(tight.means, tight.covariances, strict=True)],
+        boxes=[box],
+        box_weights=[0.5],
+    )
+    k = fusion.subsamples(coarse, mixture)
+    assert k == 4  # 0.4 m voxels against a box 0.1 m wide: sub-voxels of 0.1 m
+    expected = loop_mass(coarse, mixture, k)
+    np.testing.assert_allclose(
+        fusion.language_log_likelihood(coarse, mixture), expected - expected.max(), atol=1e-4
+    )
+    fine = VoxelGrid(origin=(-0.4, -0.6, 0.0), shape=(24, 20, 12), voxel_size=0.1)
+    assert fusion.subsamples(fine, mixture) == 1
+    # The finer grid is bounded: fewer sub-voxels rather than more memory.
+    huge = VoxelGrid(origin=(0.0, 0.0, 0.0), shape=(200, 200, 100), voxel_size=0.4)
+    assert fusion.subsamples(huge, mixture) == 1 and huge.n_voxels * 2**3 > fusion.SUBSAMPLED_VOXELS
 
 
 def test_language_layer_is_clamped_relative_to_its_best_voxel() -> None:

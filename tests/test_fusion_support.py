@@ -1,9 +1,10 @@
-"""The language term evaluated on each component's support against the dense evaluation on every voxel.
+"""The language term at voxel centres evaluated on each component's support (`fusion.centre_log_likelihood`,
+equation (3) on a grid fine against the mixture) against the dense evaluation on every voxel.
 
 The reference is the obviously-correct one: the mixture's float64 log-density at every voxel centre
-(`GaussianMixture.logpdf`), the term equation (3) defines. The truncated term must equal it within 1e-4 nats,
+(`GaussianMixture.logpdf`). The truncated term must equal it within 1e-4 nats,
 up to the constant the language layer ignores, on every voxel that can matter (within 2 span of the term's
-best voxel, `fusion.language_log_likelihood`), never exceed it anywhere, and give the same language layer
+best voxel, `fusion.centre_log_likelihood`), never exceed it anywhere, and give the same language layer
 after `fusion.apply_language`, whatever the prior layer, clamped voxels included.
 """
 
@@ -56,7 +57,7 @@ def random_prior(rng: np.random.Generator, term: np.ndarray, span: float, kind: 
 def check_against_dense(grid: VoxelGrid, mixture: GaussianMixture, span: float = SPAN, seed: int = 0) -> None:
     rng = np.random.default_rng(seed)
     tol = TOL + 2.0 * span * 2.0**-22  # float32 resolves ~2 span * 2^-23 at the floor of what matters
-    got = fusion.language_log_likelihood(grid, mixture, span)
+    got = fusion.centre_log_likelihood(grid, mixture, span)
     assert got.shape == (grid.n_voxels,) and got.dtype == fusion.LAYER_DTYPE
     ref = dense_term(grid, mixture)
     ref = ref - ref.max()
@@ -186,7 +187,7 @@ def test_uniform_boxes_in_closed_form() -> None:
         )
         check_against_dense(GRID, mixture)
     box_only = GaussianMixture.from_components([], [], boxes=boxes[:1], box_weights=[1.0])
-    got = fusion.language_log_likelihood(GRID, box_only)
+    got = fusion.centre_log_likelihood(GRID, box_only)
     inside = boxes[0].contains(GRID.centers())
     assert np.all(got[inside] == 0.0) and np.all(got[~inside] == -np.inf)
 
@@ -195,7 +196,7 @@ def test_a_mixture_that_misses_the_grid_is_refused_by_the_update() -> None:
     outside = GaussianMixture.from_components(
         [], [], boxes=[UniformBox(np.full(3, 10.0), np.full(3, 11.0))], box_weights=[1.0]
     )
-    got = fusion.language_log_likelihood(GRID, outside)
+    got = fusion.centre_log_likelihood(GRID, outside)
     assert np.all(got == -np.inf)
     belief = BeliefState(GRID)
     with pytest.raises(InvalidInput):
@@ -213,7 +214,7 @@ def test_spans_that_are_not_positive_numbers_are_refused() -> None:
     mixture = mix(INSIDE)
     for span in (0.0, -1.0, math.inf, math.nan):
         with pytest.raises(InvalidInput):
-            fusion.language_log_likelihood(GRID, mixture, span)
+            fusion.centre_log_likelihood(GRID, mixture, span)
 
 
 def test_the_belief_uses_its_own_span() -> None:

@@ -14,11 +14,16 @@ The reference writes the same sum per voxel as log-odds l_i = l_i^vis + l_i^lang
 through a sigmoid; here exactly one voxel holds the target, so the two additive layers are normalised
 jointly by the softmax (2), and "uniform prior" means 1/N per voxel.
 
-Language layer. Each utterance L_j contributes the language sensor's Gaussian mixture evaluated at the
-voxel centre c_i, times the voxel volume V (so p V approximates the probability mass the utterance puts
-in voxel i):
+Language layer. Each utterance L_j contributes the probability mass its mixture puts in voxel i,
 
-    lang_i  +=  log( p_j(c_i) V ),   p_j(x) = sum_h w_h N(x; mu_h, Sigma_h) + sum_b v_b U(x; box_b).  (3)
+    lang_i  +=  log( p_j(c_i) V ),   p_j(x) = sum_h w_h N(x; mu_h, Sigma_h) + sum_b v_b U(x; box_b),  (3)
+
+the density at the voxel centre c_i times the voxel volume V: the mass, to the midpoint rule's accuracy,
+while the voxel side s is at most twice the mixture's narrowest scale (the smallest standard deviation of
+a Gaussian, half the shortest side of a box). On a coarser grid the centre's density no longer tracks the
+mass (a reading whose mean lies on a voxel corner would lose nearly all its weight to one on a centre), so
+each voxel is cut into k^3 sub-voxels, k = ceil(s / (2 * narrowest scale)), and its mass is the sum of
+theirs: (3) on the finer grid, summed per voxel (`SUBSAMPLED_VOXELS` bounds the finer grid's size).
 
 The uniform boxes are the sensor's broad terms (`app.grounding.mixture`): exactly the density the
 sensor serves, so the belief's update is the served mixture's log-likelihood voxel for voxel.
@@ -86,6 +91,9 @@ DETECTOR_EPS = 1e-6
 LANGUAGE_TOLERANCE = 1e-5
 #: x-slabs of one Gaussian's support evaluated together (a few hundred kB of temporaries, in cache).
 _SLAB_GROUP = 8
+#: Most voxels of the finer grid on which a coarse grid's voxel masses are summed (module docstring, (3)):
+#: k is lowered to stay within it, trading accuracy for memory (4 bytes a voxel).
+SUBSAMPLED_VOXELS = 8_000_000
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -119,8 +127,53 @@ def check_sensor_model(tp: float, fp: float) -> None:
 def language_log_likelihood(
     grid: VoxelGrid, mixture: GaussianMixture, span: float = LANG_LOG_SPAN
 ) -> np.ndarray:
-    """Equation (3)'s increment relative to its best voxel, log(p(c_i) V) - max_j log(p(c_j) V), shape (N,)
-    float32, evaluated on the support of each term only.
+    """Equation (3)'s increment relative to its best voxel, shape (N,) float32: `centre_log_likelihood`,
+    or on a grid coarse against the mixture, the voxels' masses summed over k^3 sub-voxels each (module
+    docstring)."""
+    k = subsamples(grid, mixture)
+    if k == 1:
+        return centre_log_likelihood(grid, mixture, span)
+    fine = VoxelGrid(
+        grid.origin, (grid.shape[0] * k, grid.shape[1] * k, grid.shape[2] * k), grid.voxel_size / k
+    )
+    sub = centre_log_likelihood(fine, mixture, span).reshape(
+        grid.shape[0], k, grid.shape[1], k, grid.shape[2], k
+    )
+    out = np.empty(grid.shape, dtype=np.float64)
+    for start in range(0, grid.shape[0], _SLAB_GROUP):  # (g, k, ny, k, nz, k) in float64 at a time
+        block = np.exp(sub[start : start + _SLAB_GROUP].astype(np.float64))  # <= 1: shifted to a maximum of 0
+        with np.errstate(divide="ignore"):
+            out[start : start + _SLAB_GROUP] = np.log(block.sum(axis=(1, 3, 5)))
+    flat = out.reshape(-1)
+    peak = float(flat.max())
+    if math.isfinite(peak):
+        flat -= peak
+    return flat.astype(LAYER_DTYPE)
+
+
+def subsamples(grid: VoxelGrid, mixture: GaussianMixture) -> int:
+    """k of equation (3): sub-voxels per axis so that their side is at most twice the mixture's narrowest
+    scale, lowered to keep the finer grid within SUBSAMPLED_VOXELS (at least 1)."""
+    scales = [math.inf]
+    keep = mixture.weights > 0
+    if keep.any():
+        scales.append(math.sqrt(max(float(np.linalg.eigvalsh(mixture.covariances[keep]).min()), 0.0)))
+    sides = (mixture.box_highs - mixture.box_lows)[mixture.box_weights > 0]
+    if len(sides):
+        scales.append(0.5 * float(sides.min()))
+    narrowest = min(scales)
+    if not narrowest > 0 or grid.voxel_size <= 2.0 * narrowest:
+        return 1
+    wanted = math.ceil(grid.voxel_size / (2.0 * narrowest))
+    room = int((SUBSAMPLED_VOXELS / grid.n_voxels) ** (1.0 / 3.0))
+    return max(1, min(wanted, room))
+
+
+def centre_log_likelihood(
+    grid: VoxelGrid, mixture: GaussianMixture, span: float = LANG_LOG_SPAN
+) -> np.ndarray:
+    """log(p(c_i) V) - max_j log(p(c_j) V) at every voxel centre, shape (N,) float32, evaluated on the support
+    of each term only.
 
     The language layer is defined up to an additive constant (`apply_language` shifts it), so the term is
     returned with its maximum at 0 and in the layers' float32: values that matter lie within a few times
