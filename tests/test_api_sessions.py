@@ -389,7 +389,7 @@ def test_session_limits(two_rooms: dict, settings: Any) -> None:
         assert third.json()["field"] == "max_sessions_per_robot"
         fine = client.post("/v1/sessions", json={"robot_id": "r8", "scene_graph": two_rooms})
         assert fine.status_code == 422
-        assert fine.json()["field"] == "max_voxels"
+        assert fine.json()["field"] == "max_grid_voxels"  # the setting, as for a grid given by corners
         sid = client.get("/v1/sessions").json()["sessions"][0]["id"]
         batch = {"voxels": [[0, 0, 0]] * 5, "labels": ["a"] * 5}
         big = client.post(f"/v1/sessions/{sid}/observations", json=batch)

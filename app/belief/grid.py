@@ -80,7 +80,7 @@ class VoxelGrid:
                 f"the scene's extent {np.round(high - low, 2).tolist()} m at {voxel_size} m voxels needs "
                 f"{n_voxels:,} voxels, more than the limit {max_voxels:,}; use larger voxels"
             )
-            raise LimitExceeded(msg, "max_voxels")
+            raise LimitExceeded(msg, "max_grid_voxels")
         return cls(origin=tuple(first * voxel_size), shape=tuple(shape), voxel_size=voxel_size)
 
     @property

@@ -699,7 +699,7 @@ def new_session(
         grid = VoxelGrid.around(scene_graph, voxel_size=voxel_size, margin=margin, max_voxels=max_voxels)
     elif grid.n_voxels > max_voxels:
         msg = f"the grid has {grid.n_voxels} voxels, more than the limit {max_voxels}"
-        raise LimitExceeded(msg, "max_voxels")
+        raise LimitExceeded(msg, "max_grid_voxels")
     created = time.time() if now is None else now
     if not math.isfinite(created):
         msg = "creation time must be finite"
