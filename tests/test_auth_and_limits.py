@@ -77,7 +77,7 @@ def test_body_larger_than_the_limit_is_413(scene_graph_dict: dict) -> None:
         body = {"scene_graph": scene_graph_dict, "utterance": "the bag is on the table"}
         response = client.post("/v1/ground", json=body, headers=_bearer("admin"))
     assert response.status_code == 413
-    assert response.json()["code"] == "limit_exceeded"
+    assert (response.json()["code"], response.json()["field"]) == ("limit_exceeded", "max_body_bytes")
 
 
 def test_robot_principal_reads_and_writes_only_its_robots() -> None:
@@ -130,7 +130,7 @@ def test_streamed_body_larger_than_the_limit_is_413(scene_graph_dict: dict) -> N
             "/v1/ground", content=chunks(), headers={**_bearer("admin"), "content-type": "application/json"}
         )
     assert response.status_code == 413
-    assert response.json()["code"] == "limit_exceeded"
+    assert (response.json()["code"], response.json()["field"]) == ("limit_exceeded", "max_body_bytes")
 
 
 # --- roles on sessions ------------------------------------------------------------------------------------

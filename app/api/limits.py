@@ -13,7 +13,6 @@ from __future__ import annotations
 import time
 
 import anyio
-from starlette.exceptions import HTTPException
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -56,7 +55,7 @@ class BodySizeLimitMiddleware:
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
                 if seen > self.max_body_bytes:
-                    raise HTTPException(status_code=413, detail=self._too_large(seen))
+                    raise LimitExceeded(self._too_large(seen), limit_name="max_body_bytes")
                 complete = not message.get("more_body", False)
             return message
 
