@@ -49,6 +49,20 @@ def test_every_operation_has_a_stable_id_a_summary_and_documented_errors() -> No
     assert len(ids) == len(set(ids))
 
 
+def test_every_conditional_read_declares_its_etag() -> None:
+    """A GET that may answer 304 says which ETag its 200 carries, for generated clients to read it."""
+    spec = json.loads(COMMITTED.read_text(encoding="utf-8"))
+    conditional = [
+        (path, op)
+        for path, methods in spec["paths"].items()
+        for method, op in methods.items()
+        if "304" in op["responses"]
+    ]
+    assert len(conditional) >= 2
+    for path, op in conditional:
+        assert "ETag" in op["responses"]["200"].get("headers", {}), path
+
+
 def spec_validator(spec: dict[str, Any], schema: dict[str, Any]) -> jsonschema.Draft202012Validator:
     """A validator for one of the spec's schemas, its "#/components/..." references resolved in the spec."""
     return jsonschema.Draft202012Validator({**schema, "components": spec["components"]})

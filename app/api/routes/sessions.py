@@ -28,8 +28,9 @@ _AUTH = (401, 403, 429)
 _WRITE_ERRORS = error_responses(400, *_AUTH, 404, 408, 413, 415, 422, 503)
 _READ_ERRORS = error_responses(*_AUTH, 404, 422, 503)
 _DELETE_RESPONSES = {**_READ_ERRORS, **replayable(204)}
-_NOT_MODIFIED: dict[int | str, dict[str, object]] = {
-    304: {"description": "Not modified since the ETag given in If-None-Match."}
+_CONDITIONAL: dict[int | str, dict[str, object]] = {
+    200: {"headers": {"ETag": {"description": "The belief version.", "schema": {"type": "string"}}}},
+    304: {"description": "Not modified since the ETag given in If-None-Match."},
 }
 
 
@@ -233,7 +234,7 @@ async def get_belief(
     "/{session_id}/belief/topdown",
     operation_id="get_belief_topdown",
     response_model=schemas.TopDownOut,
-    responses={**_READ_ERRORS, **_NOT_MODIFIED},
+    responses={**_READ_ERRORS, **_CONDITIONAL},
 )
 async def get_belief_topdown(
     session_id: str,
