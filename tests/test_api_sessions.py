@@ -555,6 +555,17 @@ def test_an_ungroundable_utterance_fuses_its_broad_prior_and_says_so(
     assert not np.array_equal(_grid(client, sid, layers=True)["lang"], before["lang"])
 
 
+def test_a_generic_naming_of_the_target_fuses(client: TestClient, two_rooms: dict) -> None:
+    """People say "the chair" for an armchair and "the blue bin" for a trash can: a looser naming."""
+    for target, utterance in (
+        ("armchair", "the chair is next to the table"),
+        ("trash can", "the blue bin is by the table"),
+    ):
+        sid = _create(client, two_rooms, target_label=target)["id"]
+        body = _say(client, sid, utterance)
+        assert body["fused"] is True, (target, body["reason"])
+
+
 def test_an_unset_target_is_still_learnt_from_the_first_utterance_naming_a_class(
     client: TestClient, two_rooms: dict
 ) -> None:

@@ -66,6 +66,21 @@ def proposer() -> BuiltinProposer:
     return BuiltinProposer.load(TextEncoder())
 
 
+@pytest.mark.parametrize(
+    ("phrase", "name", "level"),
+    [
+        ("blue bin", "trash can", 1),  # a generic head noun with modifiers names as the bare word does
+        ("chair", "armchair", 1),  # "the chair on the right" for an armchair (Nr3D)
+        ("big bag", "backpack", 1),
+        ("chair", "sofa", 0),
+        ("blue bin", "chair", 0),
+    ],
+)
+def test_looser_namings_people_use(phrase: str, name: str, level: int) -> None:
+    assert lexical_match(lemmas(phrase), lemmas(name)) == level
+    assert not same_class(lemmas(phrase), lemmas(name))
+
+
 # --- same class ---------------------------------------------------------------------------------------------
 
 

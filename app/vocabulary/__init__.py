@@ -223,6 +223,7 @@ GENERIC_NAMES: dict[str, tuple[str, ...]] = {
     "screen": ("monitor", "tv", "projector screen"),
     "computer": ("computer tower", "laptop", "monitor"),
     "seat": ("chair", "office chair", "armchair", "stool", "bench", "couch"),
+    "chair": ("chair", "armchair"),  # the others' head noun is "chair" already
     "couch": ("couch", "sofa chair", "loveseat"),
     "clock": ("alarm clock", "wall clock", "clock"),
     "shelf": ("bookshelf", "shelving unit", "shelf"),
@@ -300,6 +301,7 @@ def lexical_match(phrase: str, name: str) -> int:
         or same_class(phrase, head_noun(name))
         or _generic_covers(phrase, name)
         or _generic_covers(name, phrase)
+        or _generic_covers(head_noun(phrase), name)  # "the blue bin" for a trash can
     )
     if looser:
         return 1
