@@ -68,6 +68,21 @@ def spec_validator(spec: dict[str, Any], schema: dict[str, Any]) -> jsonschema.D
     return jsonschema.Draft202012Validator({**schema, "components": spec["components"]})
 
 
+def test_the_spec_refuses_what_the_service_refuses() -> None:
+    """Rules JSON Schema can state are stated: a side of zero, an array of a dtype its field never takes."""
+    spec = json.loads(COMMITTED.read_text(encoding="utf-8"))
+    box = spec_validator(spec, {"$ref": "#/components/schemas/SceneObject"})
+    assert box.is_valid({"id": "a", "label": "box", "center": [0, 0, 0], "size": [1, 1, 0.5]})
+    assert not box.is_valid({"id": "a", "label": "box", "center": [0, 0, 0], "size": [1, 0, 0.5]})
+    operation = spec["paths"]["/v1/sessions/{session_id}/observations"]["post"]
+    batch = spec_validator(spec, operation["requestBody"]["content"]["application/msgpack"]["schema"])
+    voxels = {"dtype": "<i4", "shape": [1, 3], "data": "AAAA"}
+    labels = {"dtype": "<u4", "shape": [1], "data": "AAAA"}
+    assert batch.is_valid({"voxels": voxels, "labels": labels})
+    assert not batch.is_valid({"voxels": {**voxels, "dtype": "<f8"}, "labels": labels})
+    assert not batch.is_valid({"voxels": voxels, "labels": {**labels, "dtype": "<i8"}})
+
+
 REQUEST_FILES = {
     ("/v1/ground", "post"): ["requests/ground.json", "requests/ground_small.json"],
     ("/v1/sessions", "post"): ["requests/session.json"],

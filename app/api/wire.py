@@ -215,6 +215,16 @@ def belief_grid_stream(
     return length, chunks()
 
 
+def _packed(field: str) -> dict[str, object]:
+    """A PackedArray of the dtypes `field` allows (`unpack_array`), as an OpenAPI schema."""
+    return {
+        "allOf": [
+            {"$ref": "#/components/schemas/PackedArray"},
+            {"properties": {"dtype": {"enum": list(_ALLOWED_DTYPES[field])}}},
+        ]
+    }
+
+
 #: The OpenAPI request body of POST /v1/sessions/{id}/observations: the JSON batch, or the same as msgpack.
 OBSERVATION_REQUEST_BODY = {
     "required": True,
@@ -227,15 +237,10 @@ OBSERVATION_REQUEST_BODY = {
                 "additionalProperties": False,
                 "properties": {
                     "stamp": {"type": "number"},
-                    "voxels": {"$ref": "#/components/schemas/PackedArray"},
-                    "points": {"$ref": "#/components/schemas/PackedArray"},
-                    "labels": {
-                        "oneOf": [
-                            {"$ref": "#/components/schemas/PackedArray"},
-                            {"type": "array", "items": {"type": "string"}},
-                        ]
-                    },
-                    "p_target": {"$ref": "#/components/schemas/PackedArray"},
+                    "voxels": _packed("voxels"),
+                    "points": _packed("points"),
+                    "labels": {"oneOf": [_packed("labels"), {"type": "array", "items": {"type": "string"}}]},
+                    "p_target": _packed("p_target"),
                     "sensor_model": {"$ref": "#/components/schemas/SensorModelOverride"},
                 },
             }

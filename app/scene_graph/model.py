@@ -14,6 +14,8 @@ import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3, description="x, y, z in metres")]
+#: A box's sides: the validators below refuse a side that is not positive; the schema says so too.
+Size3 = Annotated[Vec3, Field(json_schema_extra={"items": {"type": "number", "exclusiveMinimum": 0}})]
 
 #: Objects and regions one scene graph may hold at most, whatever the service's configured limits (which lie
 #: below): the validator refuses a longer list before reading its items, so the work a body can ask for stays
@@ -56,7 +58,7 @@ class Region(BaseModel):
     id: Id
     name: str = Field(default="", max_length=256)
     center: Vec3
-    size: Vec3
+    size: Size3
 
     @field_validator("center")
     @classmethod
@@ -77,7 +79,7 @@ class SceneObject(BaseModel):
     id: Id
     label: str = Field(min_length=1, max_length=256)
     center: Vec3
-    size: Vec3
+    size: Size3
     yaw: float = 0.0
     region_id: Id | None = None
     attributes: dict[str, Any] = Field(default_factory=dict)
