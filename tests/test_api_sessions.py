@@ -555,6 +555,18 @@ def test_an_ungroundable_utterance_fuses_its_broad_prior_and_says_so(
     assert not np.array_equal(_grid(client, sid, layers=True)["lang"], before["lang"])
 
 
+def test_a_replayed_utterance_repeats_its_first_verdict(client: TestClient, two_rooms: dict) -> None:
+    """Retried after another utterance named the session's target, a fused utterance is still told fused."""
+    sid = _create(client, two_rooms, label_map={"1": "backpack"})["id"]
+    url, key = f"/v1/sessions/{sid}/utterances", {"Idempotency-Key": "utterance-1"}
+    first = client.post(url, json={"utterance": "the mug is on the table"}, headers=key).json()
+    assert first["fused"] is True and first["belief"]["version"] == 1
+    assert _say(client, sid, "my backpack is on the sofa")["belief"]["target_label"] == "backpack"
+    retry = client.post(url, json={"utterance": "the mug is on the table"}, headers=key)
+    assert retry.headers["idempotent-replayed"] == "true"
+    assert (retry.json()["fused"], retry.json()["reason"]) == (True, first["reason"])
+
+
 def test_a_generic_naming_of_the_target_fuses(client: TestClient, two_rooms: dict) -> None:
     """People say "the chair" for an armchair and "the blue bin" for a trash can: a looser naming."""
     for target, utterance in (

@@ -553,16 +553,18 @@ class UtteranceOut(BaseModel):
     )
 
     @staticmethod
-    def answer(grounding: GroundResponse, reason: str | None) -> bytes:
+    def answer(grounding: GroundResponse, reason: str | None, fused: bool) -> bytes:
         """What the answer says besides the belief, remembered with an Idempotency-Key so that a retry
-        repeats it."""
-        return json.dumps({"grounding": grounding.model_dump(mode="json"), "reason": reason}).encode()
+        repeats it (the verdict too: by the retry the session's target may have changed)."""
+        return json.dumps(
+            {"grounding": grounding.model_dump(mode="json"), "reason": reason, "fused": fused}
+        ).encode()
 
     @staticmethod
-    def first_answer(answer: bytes) -> tuple[GroundResponse, str | None]:
-        """Inverse of `answer`."""
+    def first_answer(answer: bytes, fused: bool) -> tuple[GroundResponse, str | None, bool]:
+        """Inverse of `answer`; `fused` stands for the verdict of an answer remembered without it."""
         first = json.loads(answer)
-        return GroundResponse.model_validate(first["grounding"]), first["reason"]
+        return GroundResponse.model_validate(first["grounding"]), first["reason"], first.get("fused", fused)
 
 
 # Strict: a JSON true or 1.0 is not the integer 1.

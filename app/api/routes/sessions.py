@@ -158,13 +158,17 @@ async def post_utterance(
     ground = partial(services.ground, sensors, options.grounder, options.proposer)
     ground = partial(ground, utterance=body.utterance, hypotheses=caller_hypotheses(options))
     prepared = await sessions.prepare_utterance(principal, session_id, ground, body.utterance)
-    grounding, reason = to_response(prepared.grounding, prepared.sensor, None), prepared.reason
-    keyed = with_answer(idempotency, schemas.UtteranceOut.answer(grounding, reason))
+    grounding, reason, fused = (
+        to_response(prepared.grounding, prepared.sensor, None),
+        prepared.reason,
+        prepared.fused,
+    )
+    keyed = with_answer(idempotency, schemas.UtteranceOut.answer(grounding, reason, fused))
     applied = _marked(await sessions.fuse_utterance(principal, prepared, keyed), response)
     if applied.replayed:
-        grounding, reason = schemas.UtteranceOut.first_answer(applied.answer)
+        grounding, reason, fused = schemas.UtteranceOut.first_answer(applied.answer, fused)
     belief = schemas.BeliefOut.of(applied.value)
-    return schemas.UtteranceOut(grounding=grounding, belief=belief, fused=prepared.fused, reason=reason)
+    return schemas.UtteranceOut(grounding=grounding, belief=belief, fused=fused, reason=reason)
 
 
 @router.post(
