@@ -144,6 +144,24 @@ def test_a_creation_retried_after_its_session_was_deleted_is_not_applied_again(
     assert client.get(f"/v1/sessions/{sid}").status_code == 404  # not made again
 
 
+@pytest.mark.parametrize("kind", ["memory", pytest.param("redis", marks=pytest.mark.redis)])
+def test_a_retried_creation_of_a_deleted_session_takes_none_of_the_robots_slots(
+    request: pytest.FixtureRequest, kind: str
+) -> None:
+    """The retry is a 404, even when the robot is at its limit, and leaves the limit's slots free."""
+    store = (
+        MemorySessionStore() if kind == "memory" else redis_store(request.getfixturevalue("redis_url")).store
+    )
+    with TestClient(create_app(model_free_settings(max_sessions_per_robot=2), store=store)) as client:
+        made = key()
+        sid = create(client, made).json()["id"]
+        assert client.delete(f"/v1/sessions/{sid}").status_code == 204
+        assert create(client, made).status_code == 404
+        assert [create(client).status_code for _ in range(2)] == [201, 201]
+        assert create(client, made).status_code == 404  # at the limit: still the final answer
+    store.close()
+
+
 @pytest.mark.parametrize("bad", [b"", b" ", "é".encode() * 4, b"k" * 256, b'""', b"a\x7fb"])
 def test_a_malformed_key_is_a_422(client: TestClient, bad: bytes) -> None:
     response = create(client, {"Idempotency-Key": bad})

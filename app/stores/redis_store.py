@@ -825,6 +825,13 @@ class RedisSessionStore:
         look_alike_bytes = look_alikes.astype("<i8").tobytes()
         expiry = self._expiry_ms(now)
         robot_index = self._index_key(session.robot_id)
+        if idempotency is not None:
+            # A retry of a creation (the session live, or deleted: its tombstone) is answered before a slot
+            # is reserved, which would otherwise hold one of the robot's slots for nothing, or refuse with
+            # a 429 the final 404. The script checks again, atomically.
+            seen = self._client.hget(self._key(session.id, "idem"), f"k:{idempotency.key}")
+            if seen is not None:
+                raise AlreadyApplied(IdempotencyRecord.unpack(seen))
         if max_per_robot is not None:
             self._reserve(session.id, robot_index, now, max_per_robot)
         meta = {
