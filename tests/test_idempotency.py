@@ -210,6 +210,22 @@ def test_keys_survive_reopening_the_log_and_its_snapshots(tmp_path: Path) -> Non
     again.close()
 
 
+def test_tombstones_past_their_window_are_dropped_without_a_data_directory() -> None:
+    now = [1000.0]
+    store = StoreOps(MemorySessionStore(None, idempotency_window_s=10.0, clock=lambda: now[0]))
+    for i in range(5):
+        store.create(make_session(f"s{i}"), idempotency=Idempotency(f"made{i}", "fp"))
+        store.delete(f"s{i}")
+    assert len(store.store._tombstones) == 5
+    now[0] += 11.0
+    store.create(make_session("late"), idempotency=Idempotency("made-late", "fp"))
+    store.delete("late")
+    assert list(store.store._tombstones) == ["late"]
+    with pytest.raises(AlreadyApplied):
+        store.create(make_session("late"), idempotency=Idempotency("made-late", "fp"))
+    store.close()
+
+
 def test_a_session_remembers_its_last_keys_within_the_window() -> None:
     log = IdempotencyLog(window_s=10.0, max_keys=3)
     for i in range(5):
