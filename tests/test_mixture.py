@@ -34,6 +34,18 @@ def test_weights_are_normalised() -> None:
     np.testing.assert_allclose(mix.weights, [0.25, 0.75])
 
 
+def test_a_covariance_kilometres_wide_and_centimetres_thin_keeps_a_cholesky_factor() -> None:
+    """The LSM's region hypothesis in a map 100 km wide: eigenvalues 2e16 and 1e-4 m^2 cannot both stand."""
+    turn = np.array([[0.6, -0.8, 0.0], [0.8, 0.6, 0.0], [0.0, 0.0, 1.0]])
+    cov = turn @ np.diag([2e16, 1e-6, 1e-6]) @ turn.T
+    fixed = project_to_pd(cov)
+    np.linalg.cholesky(fixed)
+    eigenvalues = np.linalg.eigvalsh(fixed)
+    assert eigenvalues[-1] == pytest.approx(2e16) and eigenvalues[0] == pytest.approx(2e16 / 1e12, rel=1e-3)
+    # Ordinary covariances keep the absolute floor alone.
+    np.testing.assert_allclose(np.linalg.eigvalsh(project_to_pd(np.diag([4.0, 1.0, 1e-6]))), [1e-4, 1.0, 4.0])
+
+
 def test_project_to_pd_floors_eigenvalues_and_symmetrises() -> None:
     bad = np.array([[1.0, 2.0, 0.0], [1.5, 1.0, 0.0], [0.0, 0.0, -0.5]])
     fixed = project_to_pd(bad, 1e-2)

@@ -26,6 +26,8 @@ if TYPE_CHECKING:
 
 #: Smallest eigenvalue (m^2) any covariance leaves the service with: a 1 cm standard deviation.
 MIN_EIGENVALUE_M2 = 1e-4
+#: Largest ratio of a covariance's eigenvalues `project_to_pd` leaves: one Cholesky factors reliably.
+MAX_CONDITION = 1e12
 #: Smallest side (m) of a uniform box: a flat or empty extent is grown to this about its centre.
 MIN_BOX_SIDE = 0.1
 
@@ -36,7 +38,9 @@ def project_to_pd(cov: np.ndarray, min_eigenvalue: float = MIN_EIGENVALUE_M2) ->
     """Nearest symmetric matrix with eigenvalues >= `min_eigenvalue`.
 
     Sigma' = V diag(max(lambda_i, floor)) V^T with (lambda, V) the eigen-decomposition of (Sigma + Sigma^T)/2.
-    The reference repairs foundation-model covariances this way with floor 1e-2 m^2 before Cholesky.
+    The reference repairs foundation-model covariances this way with floor 1e-2 m^2 before Cholesky. The
+    floor is at least MAX_CONDITION-th of the largest eigenvalue: float64 rounding could leave a matrix
+    conditioned worse than that (a kilometre-wide map's Gaussian, 1 cm thin) without a Cholesky factor.
     A stack of matrices (..., 3, 3) is projected matrix by matrix.
     """
     cov = np.asarray(cov, dtype=np.float64)
@@ -45,7 +49,8 @@ def project_to_pd(cov: np.ndarray, min_eigenvalue: float = MIN_EIGENVALUE_M2) ->
         msg = "covariance holds NaN or infinity"
         raise ValueError(msg)
     eigvals, eigvecs = np.linalg.eigh(sym)
-    clipped = np.maximum(eigvals, min_eigenvalue)
+    floor = np.maximum(min_eigenvalue, eigvals[..., -1:] / MAX_CONDITION)  # eigh sorts ascending
+    clipped = np.maximum(eigvals, floor)
     out = (eigvecs * clipped[..., None, :]) @ np.swapaxes(eigvecs, -1, -2)
     symmetric: np.ndarray = 0.5 * (out + np.swapaxes(out, -1, -2))
     return symmetric
