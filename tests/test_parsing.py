@@ -69,6 +69,11 @@ CASES = [
     ("the cup that is on the table", "cup", Relation.ON, ("table",), None),
     ("the cat is sleeping in the box", "cat", Relation.IN, ("box",), None),
     ("Could you find my wallet? It's under the sofa", "wallet", Relation.BELOW, ("sofa",), None),
+    # A word saying which one of its kind the anchor is keeps the relation (29 dev descriptions).
+    ("the book is on the top shelf", "book", Relation.ON, ("shelf",), None),
+    ("the window nearest the front doors", "window", Relation.CLOSEST, ("doors",), None),
+    ("the desk is under the right window", "desk", Relation.BELOW, ("window",), None),
+    ("the mug is in the top cabinet", "mug", Relation.IN, ("cabinet",), None),
 ]
 
 
@@ -84,6 +89,15 @@ def test_parse(
         region,
     )
     assert parse.relation_known
+
+
+@pytest.mark.parametrize(
+    "utterance",
+    ["the chair furthest to the right", "the trash can closest to you", "select the stool nearest you"],
+)
+def test_a_side_or_the_listener_is_no_anchor(utterance: str) -> None:
+    """Not "to" (of "to the right") nor "you": words that name no object of the map."""
+    assert parse_utterance(utterance).anchor_phrases == ()
 
 
 def test_attribute_words_are_listed() -> None:

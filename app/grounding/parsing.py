@@ -224,6 +224,8 @@ _TARGET_TAIL = _words(
 _COPULAS = _words("is are was were it's they're")
 _RELATIVE_PRONOUNS = _words("that which who")
 _PRONOUNS = _words("it this that they them one ones itself")
+# The speaker and the listener: "closest to you" is a viewpoint, not an object of the map.
+_PERSONS = _words("you me us yourself myself")
 _NEGATORS = _words("not n't never no nowhere nothing without neither nor isn't aren't wasn't weren't don't")
 _VIEW_WORDS = _words("left right front behind facing leftmost rightmost")
 _COORDINATORS = _words("and or")
@@ -235,6 +237,8 @@ _NOUN_PHRASE_GAP = (
     | _COORDINATORS
     | frozenset(_DEGREES)
     | _words("either neither the other same")
+    # Which one of its kind: "on the top shelf", "nearest the front doors", "under the right window".
+    | _words("top bottom middle center centre upper lower front back rear left right far inner outer")
 )
 # Names in the vocabulary that in an utterance name a place or nothing in particular, not an object.
 _NOT_MENTIONS = frozenset(
@@ -523,8 +527,10 @@ def _unknown_relatum(tokens: list[str], start: int, stop: int) -> str:
         if token in _COPULAS or token in _RELATIVE_PRONOUNS or token in ("where", "and", "or", "but", "so"):
             break
         words.append(token)
-    phrase = clean_target(" ".join(words[:4]))
-    if not phrase or phrase.split()[0] in _PRONOUNS or any(w in _PLACE_WORDS for w in phrase.split()):
+    # "furthest to the right": the leading "to" belongs to the relation, and "the right" names no object.
+    phrase = clean_target(_ANCHOR_HEAD.sub("", " ".join(words[:4])))
+    first = phrase.split()[0] if phrase else ""
+    if not phrase or first in _PRONOUNS | _PERSONS or any(w in _PLACE_WORDS for w in phrase.split()):
         return ""
     return phrase
 
@@ -846,6 +852,14 @@ def _fallback_target(utterance: str, region_names: tuple[str, ...]) -> str:
 
 @lru_cache(maxsize=4096)  # the LSM reads it beside the proposer's own parse; robots repeat themselves
 def target_noun(utterance: str, region_names: tuple[str, ...] = ()) -> str:
-    """The target's name as said, without determiners or attribute words: "my small black backpack ..."
-    -> "backpack" (what the spatial grounder reads of the target)."""
-    return split_attributes(parse_utterance(utterance, region_names).target)[1]
+    """The target's name, what the spatial grounder reads of it: the longest object name of the vocabulary
+    that ends the target phrase, singular ("my old black backpacks ..." -> "backpack", "the kitchen cabinets"
+    -> "kitchen cabinet"), else the phrase without its attribute words. Words that say nothing of where it
+    is ("old", "favourite", a plural) so never reach the model."""
+    said = split_attributes(parse_utterance(utterance, region_names).target)[1]
+    words = lemmas(said).split()
+    nouns = object_nouns()
+    for start in range(len(words)):
+        if " ".join(words[start:]) in nouns:
+            return " ".join(words[start:])
+    return said
