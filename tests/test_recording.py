@@ -5,6 +5,8 @@ the log on the memory store and on a real Redis."""
 from __future__ import annotations
 
 import io
+import itertools
+import math
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -130,7 +132,23 @@ def test_a_long_session_is_thinned_keeping_its_first_frame_and_utterances() -> N
     numbers = [int.from_bytes(f[1:], "big") for f in frames]
     assert numbers == sorted(numbers) and numbers[0] == 0 and numbers[-1] == 999
     assert {50, 150, 950} <= set(numbers)
-    assert numbers[-20:] == list(range(980, 1000))  # the newest at full rate
+    assert numbers[-5:] == list(range(995, 1000))  # the newest at full rate
+
+
+@pytest.mark.parametrize(("arrivals", "limit"), [(200, 16), (3000, 256), (20000, 256)])
+def test_a_recording_spans_the_whole_session_at_a_resolution_that_halves_with_age(
+    arrivals: int, limit: int
+) -> None:
+    """Re-thinning the same older half at every arrival had left a hole of all but the first and the last
+    frames (versions 2-2458 of 3000 gone)."""
+    frames: list[bytes] = []
+    for i in range(arrivals):
+        frames = thin([*frames, (KEEP if i == 0 else THIN) + i.to_bytes(4, "big")], limit)
+    numbers = [int.from_bytes(f[1:], "big") for f in frames]
+    assert len(numbers) <= limit and numbers[-1] == arrivals - 1
+    for older, newer in itertools.pairwise(numbers[1:]):
+        age = arrivals - newer
+        assert newer - older <= max(4.0, 16 * age / limit * math.log2(arrivals)), (older, newer)
 
 
 def test_merged_frames_keep_one_per_version() -> None:

@@ -15,10 +15,11 @@ once, or a background record behind the next batch), the frame shows the later v
 between has none. One writer at a time, with summaries, gets exactly one frame per version.
 
 Bounds and decimation (`app.stores.recording.thin`): a session keeps at most `Settings.recording_frames`
-frames (256 by default, about 6 kB each); when one more arrives, every second frame of the older half is
-dropped, except the first frame and the frames of utterances (marked `KEEP`), so that a long session keeps
-its whole span at a resolution that halves with age while its recent frames stay at full rate; should
-utterance frames alone pass twice the limit, the oldest frames go. The stores keep the log beside the
+frames (256 by default, about 6 kB each); past it, one level of frames is halved at a time (a frame's level
+counts the thinnings it survived, so that frames of level l lie 2^l arrivals apart), never the first frame,
+the newest or the frames of utterances (marked `KEEP`), so that a long session keeps its whole span at a
+resolution that halves with age while its recent frames stay at full rate; should utterance frames alone
+pass twice the limit, the oldest frames go. The stores keep the log beside the
 session and drop it with the session (`SessionStore.record`): the memory store in process memory (not in
 its write-ahead log: a restart starts the recording again), the Redis store in one list per session written
 after the update's commit (so a process killed in between leaves that version without a frame; no exactness

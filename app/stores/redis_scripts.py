@@ -170,22 +170,50 @@ return {1}
 )
 
 # KEYS: the session's recording (a list), its meta. ARGV: [1] the packed frame, [2] the frames kept.
-# Appends while the session exists, thins past the limit as `app.sessions.recording.thin` does (a dropped
-# frame is set to '' and all of them removed at once), and gives the list the session's expiry.
-# Returns 1 when appended, 0 without the session.
+# Appends while the session exists, thins past the limit as `app.stores.recording.thin` does (a dropped
+# frame is set to '' and all of them removed at once; a kept one of the halved level is rewritten one level
+# up), and gives the list the session's expiry. Returns 1 when appended, 0 without the session.
 RECORD_SCRIPT = """
 if redis.call('EXISTS', KEYS[2]) == 0 then return 0 end
 local n = redis.call('RPUSH', KEYS[1], ARGV[1])
 local limit = tonumber(ARGV[2])
+local function level(frame)
+    local marker = string.byte(frame, 1) or 107
+    if marker == 115 then return 0 end  -- 's'
+    if marker > 128 then return marker - 128 end
+    return nil
+end
 if n > limit then
-    local half, drop = math.floor(n / 2), false
-    for i = 1, half - 1 do
-        if string.sub(redis.call('LINDEX', KEYS[1], i), 1, 1) ~= 'k' then
-            if drop then redis.call('LSET', KEYS[1], i, '') end
-            drop = not drop
+    local frames = redis.call('LRANGE', KEYS[1], 1, n - 2)
+    local counts, present = {}, 0
+    for _, frame in ipairs(frames) do
+        local lv = level(frame)
+        if lv ~= nil then
+            if counts[lv] == nil then counts[lv], present = 0, present + 1 end
+            counts[lv] = counts[lv] + 1
         end
     end
-    redis.call('LREM', KEYS[1], 0, '')
+    local share = math.max(2, math.floor(limit / (present + 1)))
+    local halved, highest = nil, nil
+    for lv, count in pairs(counts) do
+        if count > share and (halved == nil or lv < halved) then halved = lv end
+        if count >= 2 and (highest == nil or lv > highest) then highest = lv end
+    end
+    if halved == nil then halved = highest end
+    if halved ~= nil then
+        local drop = false
+        for i, frame in ipairs(frames) do
+            if level(frame) == halved then
+                if drop then
+                    redis.call('LSET', KEYS[1], i, '')
+                else
+                    redis.call('LSET', KEYS[1], i, string.char(128 + halved + 1) .. string.sub(frame, 2))
+                end
+                drop = not drop
+            end
+        end
+        redis.call('LREM', KEYS[1], 0, '')
+    end
     redis.call('LTRIM', KEYS[1], -2 * limit, -1)
 end
 local ttl = redis.call('PTTL', KEYS[2])
