@@ -6,6 +6,7 @@ are in tests/test_sessions_processes.py and tests/test_redis_cluster.py."""
 from __future__ import annotations
 
 import hashlib
+import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -223,6 +224,33 @@ def test_tombstones_past_their_window_are_dropped_without_a_data_directory() -> 
     assert list(store.store._tombstones) == ["late"]
     with pytest.raises(AlreadyApplied):
         store.create(make_session("late"), idempotency=Idempotency("made-late", "fp"))
+    store.close()
+
+
+@pytest.mark.parametrize("kind", ["memory", pytest.param("redis", marks=pytest.mark.redis)])
+def test_a_key_past_its_window_is_forgotten_alike_by_every_store(
+    request: pytest.FixtureRequest, kind: str
+) -> None:
+    """Redis had kept a key until another keyed write pruned it: a late retry replayed there, applied here."""
+    now = [time.time()]
+    options: dict[str, Any] = {"idempotency_window_s": 10.0, "clock": lambda: now[0]}
+    if kind == "memory":
+        store = StoreOps(MemorySessionStore(None, **options))
+    else:
+        store = redis_store(request.getfixturevalue("redis_url"), **options)
+    store.create(make_session("s"))
+    key = Idempotency("k", "fp")
+    assert store.detect("s", [0.6], flat_idx=np.array([1]), idempotency=key).version == 1
+    with pytest.raises(AlreadyApplied):
+        store.detect("s", [0.6], flat_idx=np.array([1]), idempotency=key)
+    made = Idempotency("made", "fp")
+    store.create(make_session("gone"), idempotency=made)
+    store.delete("gone")
+    with pytest.raises(AlreadyApplied):
+        store.create(make_session("gone"), idempotency=made)  # the tombstone
+    now[0] += 11.0
+    assert store.detect("s", [0.6], flat_idx=np.array([1]), idempotency=key).version == 2  # forgotten
+    assert store.create(make_session("gone"), idempotency=made).id == "gone"  # made again
     store.close()
 
 

@@ -34,6 +34,22 @@ local function remember(h, z, key, record, now_ms, window_ms, max_keys)
 end
 """
 
+# The record of an idempotency key (KEYS[h]; its time in the sorted set KEYS[z]), or false: none, or one older
+# than the window, which is forgotten here as the memory store forgets it (`IdempotencyLog.check`).
+_FRESH = """
+local function fresh(h, z, key, now_ms, window_ms)
+    local record = redis.call('HGET', KEYS[h], key)
+    if not record then return false end
+    local at = redis.call('ZSCORE', KEYS[z], key)
+    if at and tonumber(at) < now_ms - window_ms then
+        redis.call('HDEL', KEYS[h], key)
+        redis.call('ZREM', KEYS[z], key)
+        return false
+    end
+    return record
+end
+"""
+
 # Append an event (`app.stores.events`) to the session's stream (KEYS[i]; trimmed to about ARGV[at + 2]
 # entries) and publish "<its id> <its JSON>" on the events channel (ARGV[at + 3]): its JSON is ARGV[at], the
 # version, ARGV[at + 1]. In the script that commits the version, so that the stream holds every version once,
@@ -60,9 +76,11 @@ end
 COMMIT_SCRIPT = (
     _HSET_CHUNKS
     + _REMEMBER
+    + _FRESH
     + _EVENT
     + """
-local seen = redis.call('HGET', KEYS[6], ARGV[6])
+local keys_of = string.sub(ARGV[6], 1, 2) == 'c:' and 9 or 7
+local seen = fresh(6, keys_of, ARGV[6], tonumber(ARGV[8]), tonumber(ARGV[9]))
 if seen then return {-3, seen} end
 local state = redis.call('HMGET', KEYS[1], 'version', 'updated_at')
 if not state[1] then return {-1} end
@@ -77,7 +95,6 @@ for k = 10, 9 + tonumber(ARGV[11]) do
 end
 local new = tonumber(state[1]) + 1
 redis.call('HSET', KEYS[1], 'version', new, 'updated_at', ARGV[4])
-local keys_of = string.sub(ARGV[6], 1, 2) == 'c:' and 9 or 7
 remember(6, keys_of, ARGV[6], ARGV[7], tonumber(ARGV[8]), tonumber(ARGV[9]), tonumber(ARGV[10]))
 event(8, 12, string.format('%d', new))
 if ARGV[5] ~= '' then
@@ -97,10 +114,11 @@ return {new}
 CREATE_SCRIPT = (
     _HSET_CHUNKS
     + _REMEMBER
+    + _FRESH
     + _EVENT
     + """
 -- The key's record is the live session's, or a deleted one's tombstone: a retry of its creation either way.
-local seen = ARGV[1] ~= '' and redis.call('HGET', KEYS[5], ARGV[1])
+local seen = ARGV[1] ~= '' and fresh(5, 6, ARGV[1], tonumber(ARGV[3]), tonumber(ARGV[4]))
 if seen then return {-3, seen} end
 if redis.call('EXISTS', KEYS[1]) == 1 then return {-1} end
 redis.call('DEL', KEYS[2], KEYS[3], KEYS[4], KEYS[5], KEYS[6], KEYS[8])  -- what a deleted incarnation left
@@ -128,10 +146,11 @@ return {0}
 # event (`_EVENT`; its version is the session's last), [9] how long the events stream stays (ms).
 # Returns {0} when deleted, {-1} without the session, {-3, record} when the key was seen.
 DELETE_SCRIPT = (
-    _EVENT
+    _FRESH
+    + _EVENT
     + """
 if ARGV[1] ~= '' then
-    local seen = redis.call('HGET', KEYS[5], ARGV[1])
+    local seen = fresh(5, 6, ARGV[1], tonumber(ARGV[3]), tonumber(ARGV[4]))
     if seen then return {-3, seen} end
 end
 local version = redis.call('HGET', KEYS[1], 'version')
@@ -152,15 +171,17 @@ return {0}
 """
 )
 
-# KEYS: meta, events, idem. ARGV: [1]-[4] the event (`_EVENT`) of the session's current version, [5] an
-# idempotency key ("" for none; an announcement remembers none, but refuses one an update used).
+# KEYS: meta, events, idem, idem_at. ARGV: [1]-[4] the event (`_EVENT`) of the session's current version,
+# [5] an idempotency key ("" for none; an announcement remembers none, but refuses one an update used),
+# [6] now ms, [7] window ms.
 # Returns {1} when published, {0} without the session, {-3, record} when the key was seen (nothing published).
 ANNOUNCE_SCRIPT = (
-    _EVENT
+    _FRESH
+    + _EVENT
     + """
 local version = redis.call('HGET', KEYS[1], 'version')
 if not version then return {0} end
-local seen = ARGV[5] ~= '' and redis.call('HGET', KEYS[3], ARGV[5])
+local seen = ARGV[5] ~= '' and fresh(3, 4, ARGV[5], tonumber(ARGV[6]), tonumber(ARGV[7]))
 if seen then return {-3, seen} end
 event(2, 1, version)
 local ttl = redis.call('PTTL', KEYS[1])

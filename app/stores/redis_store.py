@@ -829,9 +829,9 @@ class RedisSessionStore:
             # A retry of a creation (the session live, or deleted: its tombstone) is answered before a slot
             # is reserved, which would otherwise hold one of the robot's slots for nothing, or refuse with
             # a 429 the final 404. The script checks again, atomically.
-            seen = self._client.hget(self._key(session.id, "idem"), f"k:{idempotency.key}")
+            seen = self._fresh(self._client.hget(self._key(session.id, "idem"), f"k:{idempotency.key}"), now)
             if seen is not None:
-                raise AlreadyApplied(IdempotencyRecord.unpack(seen))
+                raise AlreadyApplied(seen)
         if max_per_robot is not None:
             self._reserve(session.id, robot_index, now, max_per_robot)
         meta = {
@@ -891,6 +891,13 @@ class RedisSessionStore:
         self, session: Session, *, max_per_robot: int | None = None, idempotency: Idempotency | None = None
     ) -> SessionInfo:
         return await _off_loop(functools.partial(self._create, session, max_per_robot, idempotency))
+
+    def _fresh(self, packed: bytes | None, now: float) -> IdempotencyRecord | None:
+        """A key's record read outside a script, unless it is older than the window (the scripts' `fresh`)."""
+        if packed is None:
+            return None
+        record = IdempotencyRecord.unpack(packed)
+        return record if (now - record.at) * 1000 <= self.idempotency_window_ms else None
 
     def _reserve(self, session_id: str, robot_index: str, now: float, limit: int) -> None:
         """Count the session in its robot's index, atomically with the check that the robot has fewer than
@@ -1012,9 +1019,10 @@ class RedisSessionStore:
         with self._client.pipeline(transaction=True) as pipe:
             pipe.hget(meta_key, "static")
             pipe.hget(idem_key, key or "-")
-            static_raw, seen = pipe.execute()
-        if seen is not None and key:
-            raise AlreadyApplied(IdempotencyRecord.unpack(seen))
+            static_raw, seen_raw = pipe.execute()
+        seen = self._fresh(seen_raw, self._clock()) if key else None
+        if seen is not None:
+            raise AlreadyApplied(seen)
         if static_raw is None:
             raise _not_found(session_id)
         static = _decode_static(static_raw)
@@ -1047,9 +1055,11 @@ class RedisSessionStore:
         if static_raw is None:
             raise _not_found(session_id)
         static = _decode_static(static_raw)
-        keys = [self._key(session_id, part) for part in ("meta", "events", "idem")]
-        args = self._event_args(session_id, static, static["target_label"], self._clock(), cause)
-        args.append(f"k:{idempotency.key}" if idempotency is not None else "")
+        keys = [self._key(session_id, part) for part in ("meta", "events", "idem", "idem_at")]
+        now = self._clock()
+        args = self._event_args(session_id, static, static["target_label"], now, cause)
+        args += [f"k:{idempotency.key}" if idempotency is not None else "", int(now * 1000)]
+        args.append(self.idempotency_window_ms)
         outcome = self._script("announce")(keys=keys, args=args)
         if int(outcome[0]) == -3:
             raise AlreadyApplied(IdempotencyRecord.unpack(outcome[1]))
