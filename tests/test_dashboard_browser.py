@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 from PIL import Image, ImageStat
 
+from app.api.auth import digest, new_key
 from app.client import VLMapClient
 from app.sim.service import running_service
 from bench.dashboard_paint import (
@@ -222,6 +223,27 @@ def test_a_scene_graph_read_that_failed_is_read_again(
         browser,
         lambda d: seen.extend(requested_urls(d)) or any(u.endswith(f"/{sid}/scene-graph") for u in seen),
     )
+
+
+def test_another_robots_session_is_reported_and_the_key_kept(browser: WebDriver) -> None:
+    """A robot key may read its robot's sessions only: a link to another robot's is a 403 there, not a bad key
+    (the page had forgotten the key and asked for another)."""
+    from selenium.webdriver.common.by import By
+
+    mine, theirs = new_key(), new_key()
+    records = [
+        {"name": "robot-7", "role": "robot", "sha256": digest(mine), "robot_ids": ["robot-7"]},
+        {"name": "robot-8", "role": "robot", "sha256": digest(theirs), "robot_ids": ["robot-8"]},
+    ]
+    with running_service({**QUICK_SERVICE, "VLMAP_API_KEYS": json.dumps(records)}) as url:
+        own = VLMapClient(url, api_key=mine, timeout_s=120.0).create_session("robot-7", SCENE)["id"]
+        other = VLMapClient(url, api_key=theirs, timeout_s=120.0).create_session("robot-8", SCENE)["id"]
+        open_dashboard(browser, url, mine, other)
+        wait(browser, lambda d: "Could not read the session" in d.find_element(By.ID, "detail-meta").text)
+        assert browser.find_element(By.ID, "main").is_displayed()
+        assert not browser.find_element(By.ID, "key-form").is_displayed()
+        assert browser.execute_script("return sessionStorage.getItem(arguments[0])", KEY_ENTRY) == mine
+        assert wait(browser, lambda d: own in listed(d))
 
 
 def expired(client: VLMapClient, session_id: str) -> bool:

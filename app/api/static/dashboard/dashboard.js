@@ -16,7 +16,8 @@ const GONE = "This session is gone (deleted, or expired after its idle time).";
 
 const $ = (id) => document.getElementById(id);
 
-class AuthError extends Error {}
+class AuthError extends Error {} // 401: no key, or one the service does not know
+class Forbidden extends Error {} // 403: a known key that may not read this (another robot's session)
 class NotFound extends Error {} // a session read answered 404: deleted or expired
 
 const state = {
@@ -43,7 +44,8 @@ async function getJSON(path, etag = null) {
   if (response.status === 304) return null;
   if (response.status === 401 || response.status === 403) {
     const body = await response.json().catch(() => ({}));
-    throw new AuthError(body.message || `HTTP ${response.status}`);
+    const message = body.message || `HTTP ${response.status}`;
+    throw response.status === 401 ? new AuthError(message) : new Forbidden(message);
   }
   if (response.status === 404) throw new NotFound(`${path}: HTTP 404`);
   if (!response.ok) throw new Error(`${path}: HTTP ${response.status}`);
@@ -598,7 +600,8 @@ async function open(key) {
   try {
     await loadSessions();
   } catch (error) {
-    if (error instanceof AuthError) return askForKey(error.message);
+    // A key that may not list sessions cannot serve the dashboard at all: ask for another.
+    if (error instanceof AuthError || error instanceof Forbidden) return askForKey(error.message);
     setStatus(`the service did not answer: ${error.message}`, "broken");
     return;
   }
