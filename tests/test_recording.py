@@ -151,6 +151,22 @@ def test_a_recording_spans_the_whole_session_at_a_resolution_that_halves_with_ag
         assert newer - older <= max(4.0, 16 * age / limit * math.log2(arrivals)), (older, newer)
 
 
+def test_a_replaced_scene_graph_outlives_the_thinning() -> None:
+    """The replacement's frame is the only one holding the new graph: thinned away, the recording (and the
+    MCAP) showed the first graph for the whole session."""
+    client = TestClient(create_app(model_free_settings(recording_frames=8)))
+    with client:
+        sid = a_session(client)
+        replaced = {**SCENE, "objects": [*SCENE["objects"], {**SCENE["objects"][0], "id": "new-desk"}]}
+        assert client.put(f"/v1/sessions/{sid}/scene-graph", json=replaced).status_code == 200
+        for k in range(40):
+            batch = {"voxels": [[k % 5, 1, 1]], "labels": [1]}
+            assert client.post(f"/v1/sessions/{sid}/observations", json=batch).status_code == 200
+        frames = client.get(f"/v1/sessions/{sid}/recording").json()["frames"]
+    graphs = [f["scene_graph"] for f in frames if f["scene_graph"] is not None]
+    assert len(graphs) == 2 and "new-desk" in {o["id"] for o in graphs[-1]["objects"]}
+
+
 def test_merged_frames_keep_one_per_version() -> None:
     summary: dict[str, Any] = {"top_voxels": []}
     first = Frame(3, 1.0, {"kind": "utterance"}, "b", summary, utterance={"text": "x"})

@@ -17,10 +17,10 @@ between has none. One writer at a time, with summaries, gets exactly one frame p
 Bounds and decimation (`app.stores.recording.thin`): a session keeps at most `Settings.recording_frames`
 frames (256 by default, about 6 kB each); past it, one level of frames is halved at a time (a frame's level
 counts the thinnings it survived, so that frames of level l lie 2^l arrivals apart), never the first frame,
-the newest or the frames of utterances (marked `KEEP`), so that a long session keeps its whole span at a
-resolution that halves with age while its recent frames stay at full rate; should utterance frames alone
-pass twice the limit, the oldest frames go. The stores keep the log beside the
-session and drop it with the session (`SessionStore.record`): the memory store in process memory (not in
+the newest or the frames of utterances and scene graphs (marked `KEEP`), so that a long session keeps its
+whole span at a resolution that halves with age while its recent frames stay at full rate; should those
+frames alone pass twice the limit, the oldest frames go. The stores keep the log beside the session and drop
+it with the session (`SessionStore.record`): the memory store in process memory (not in
 its write-ahead log: a restart starts the recording again), the Redis store in one list per session written
 after the update's commit (so a process killed in between leaves that version without a frame; no exactness
 per version is promised anyway).
@@ -56,7 +56,11 @@ class Frame:
 
     @property
     def keep(self) -> bool:
-        return self.utterance is not None or self.cause.get("kind") == "created"
+        """Never thinned: an utterance's frame, and a frame carrying a scene graph (the first, or a
+        replacement: the only frame that holds the graph that later frames are about)."""
+        return (
+            self.utterance is not None or self.scene_graph is not None or self.cause.get("kind") == "created"
+        )
 
     def pack(self) -> bytes:
         fields = [self.version, self.at, self.cause, self.target_label, self.summary]
