@@ -166,6 +166,10 @@ class SendPolicy:
         change = Change.between(self.acknowledged, snapshot.scene_graph)
         known = self.acknowledged is not None
         unsendable = self.refused is not None and not Change.between(self.refused, snapshot.scene_graph)
+        if self.pending is not None and not Change.between(self.pending.scene_graph, snapshot.scene_graph):
+            # The graph waiting (maybe for the retry of a PUT whose answer was lost) came again: it keeps its
+            # Idempotency-Key, so that the service applies it once.
+            snapshot = self.pending
         self.pending = snapshot if (change or not known) and not unsendable else None
         return change if self.pending is not None else None
 

@@ -326,6 +326,20 @@ def test_an_empty_graph_is_sent_while_what_the_service_holds_is_unknown() -> Non
     assert policy.offer(emptied) is not None and policy.due(2.0) is emptied
 
 
+def test_a_graph_that_comes_again_while_its_put_is_retried_keeps_its_key() -> None:
+    """Hydra publishes its graph over and over: one arriving during the backoff is the same PUT, not another."""
+    policy = SendPolicy(min_interval_s=0.1, max_backoff_s=4.0)
+    first = snapshot(FIRST)
+    policy.offer(first)
+    policy.failed(0.0)  # the answer was lost: the service may have applied it
+    again = snapshot(FIRST)
+    assert policy.offer(again) is not None
+    due = policy.due(1.0)
+    assert due is not None and due.key == first.key
+    policy.offer(snapshot(SECOND))
+    assert policy.pending is not None and policy.pending.key != first.key  # another graph: another key
+
+
 def test_a_change_is_judged_by_id_on_objects_and_regions() -> None:
     first = expected(FIRST)
     reordered = first.model_copy(update={"objects": first.objects[::-1], "frame_id": "odom"})
