@@ -327,7 +327,7 @@ def test_an_empty_graph_is_sent_while_what_the_service_holds_is_unknown() -> Non
 
 
 def test_a_graph_that_comes_again_while_its_put_is_retried_keeps_its_key() -> None:
-    """Hydra publishes its graph over and over: one arriving during the backoff is the same PUT, not another."""
+    """Hydra publishes its graph again and again: one arriving during the backoff is the same PUT."""
     policy = SendPolicy(min_interval_s=0.1, max_backoff_s=4.0)
     first = snapshot(FIRST)
     policy.offer(first)
