@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from app.data.templates import LABEL_SYNONYMS, RELATION_PHRASES, render_utterance
+from app.data.templates import LABEL_SYNONYMS, RELATION_PHRASES, SR3D_PHRASES, VLA3D_PHRASES, render_utterance
 from app.grounding.parsing import parse_utterance, split_attributes
 from app.grounding.relations import Relation
 
@@ -98,6 +98,21 @@ def test_parse(
 def test_a_side_or_the_listener_is_no_anchor(utterance: str) -> None:
     """Not "to" (of "to the right") nor "you": words that name no object of the map."""
     assert parse_utterance(utterance).anchor_phrases == ()
+
+
+@pytest.mark.parametrize("table", [RELATION_PHRASES, SR3D_PHRASES, VLA3D_PHRASES])
+def test_every_phrase_the_case_builder_says_reads_back_as_its_relation(
+    table: dict[Relation, tuple[str, ...]],
+) -> None:
+    """VLA-3D's "most distant from" had read as an unknown "near". Sr3D says "close to" and "near" for its
+    closest (its own wording), which the parser reads as near by design: the proposer adds the closest."""
+    for relation, phrases in table.items():
+        anchor = "the sofa and the armchair" if relation is Relation.BETWEEN else "the table"
+        for phrase in phrases:
+            if table is SR3D_PHRASES and relation is Relation.CLOSEST and phrase in ("close to", "near"):
+                continue
+            parse = parse_utterance(f"the mug that is {phrase} {anchor}")
+            assert (parse.relation, parse.relation_known) == (relation, True), phrase
 
 
 def test_attribute_words_are_listed() -> None:

@@ -134,6 +134,7 @@ EXTRA_PHRASES: dict[Relation, tuple[str, ...]] = {
         "farther away from",
         "further away from",
         "most far from",
+        "most distant from",  # VLA-3D's templates (`app.data.templates.VLA3D_PHRASES`)
         "away from",
     ),
     Relation.ON: (
