@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from app.data.cases import GroundingCase, read_cases
+from app.errors import InvalidInput
 from app.grounding.builtin import MIN_SPREADS, SPREADS, BuiltinProposer, ProposerParams
 from app.grounding.sensor import LanguageSensor
 from app.lsm.grounder import DEFAULT_MODEL_DIR, LSMGrounder
@@ -136,6 +137,21 @@ def test_fitting_writes_loadable_parameters_that_lower_the_objective(
 def _on(case: GroundingCase, map_id: str, scans: list[str]) -> GroundingCase:
     """The case on a map of the given scans, as the case builder records it."""
     return case.model_copy(update={"meta": {**case.meta, "scene_id": map_id, "scene_ids": scans}})
+
+
+def test_a_fit_without_held_out_cases_says_so(tmp_path: Path) -> None:
+    """The held-out part chooses the penalty: without it the fit had died in numpy's concatenate."""
+    with pytest.raises(InvalidInput, match="no usable case fell in the held-out part"):
+        fit_proposer(
+            [],
+            [CASES],
+            tmp_path / "out",
+            DEFAULT_MODEL_DIR,
+            built_every=1,
+            held_out_share=0.0,
+            progress=False,
+        )
+    assert not (tmp_path / "out").exists()
 
 
 def test_no_scan_is_on_both_sides_of_the_held_out_split() -> None:

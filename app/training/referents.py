@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from app.data.cases import GroundingCase, read_cases
+from app.errors import InvalidInput
 from app.grounding.builtin import MIN_SPREADS, REGION, SPREADS, BuiltinProposer, ProposerParams
 from app.grounding.hypotheses import MIN_BACKGROUND_WEIGHT, Hypothesis
 from app.grounding.interfaces import Grounder
@@ -497,6 +498,16 @@ def fit_proposer(
             continue
         prepared["held_out" if side else "fit"].append(fit_case)
     prepare_s = time.perf_counter() - started
+    for part in ("fit", "held_out"):
+        if not prepared[part]:
+            counts = f"{len(prepared['fit'])} fit, {len(prepared['held_out'])} held out, {skipped} skipped"
+            name = part.replace("_", "-")
+            msg = (
+                f"no usable case fell in the {name} part ({counts}, {straddling} straddling; --held-out "
+                f"{held_out_share:g}): the held-out part chooses the penalty, so both parts need cases of "
+                "several scans"
+            )
+            raise InvalidInput(msg, field="--held-out")
     mean, scale, g_mean, g_scale = standardisers(prepared["fit"])
     fit_batch = _batch(prepared["fit"], mean, scale, g_mean, g_scale)
     held_batch = _batch(prepared["held_out"], mean, scale, g_mean, g_scale)
@@ -579,16 +590,20 @@ def run(args: argparse.Namespace) -> int:
     if not args.human and not args.built:
         msg = "give --human and/or --built case files"
         raise SystemExit(msg)
-    report = fit_proposer(
-        args.human,
-        args.built,
-        args.out,
-        args.model_dir,
-        built_every=args.built_every,
-        held_out_share=args.held_out,
-        gamma=args.gamma,
-        progress=not args.no_progress,
-    )
+    try:
+        report = fit_proposer(
+            args.human,
+            args.built,
+            args.out,
+            args.model_dir,
+            built_every=args.built_every,
+            held_out_share=args.held_out,
+            gamma=args.gamma,
+            progress=not args.no_progress,
+        )
+    except InvalidInput as exc:
+        msg = f"vlmap fit-proposer: {exc}"
+        raise SystemExit(msg) from exc
     print(json.dumps(report, indent=2))
     return 0
 
