@@ -18,7 +18,7 @@ import pytest
 import torch
 from scipy.stats import multivariate_normal
 
-from app.data.cases import read_cases
+from app.data.cases import CaseTarget, GroundingCase, read_cases
 from app.errors import NotFound
 from app.evaluation.metrics import anees, nees
 from app.grounding.hypotheses import Hypothesis
@@ -48,7 +48,7 @@ from app.lsm.model import (
 )
 from app.lsm.text_encoder import MINILM_SHA256, TextEncoder
 from app.scene_graph.model import SceneGraph
-from app.training.lsm import Densities, apply_calibration, fit_calibration, predict
+from app.training.lsm import Densities, apply_calibration, fit_calibration, predict, target_region
 from tests.conftest import moved_scene
 
 CASES = Path(__file__).parent / "resources" / "lsm" / "cases.jsonl"
@@ -937,3 +937,19 @@ def test_a_split_knows_each_samples_room_and_convention_and_the_report_uses_them
     assert set(report["per_convention"]) == expected_keys
     for key, summary in report["per_convention"].items():
         assert summary["n"] == sum(f"{k} {r}" == key for k, r in zip(conventions, relations, strict=True))
+
+
+def test_a_region_sample_names_the_room_the_case_says_not_an_overlapping_neighbour() -> None:
+    """Turned rooms' boxes overlap near a shared wall: the smaller box there is the neighbour's."""
+    rooms = [
+        {"id": "2", "name": "living room", "center": [0.0, 0.0, 1.2], "size": [6.0, 6.0, 2.4]},
+        {"id": "4", "name": "hall", "center": [3.2, 0.0, 1.2], "size": [1.0, 4.0, 2.4]},
+    ]
+    scene = SceneGraph.model_validate({"regions": rooms, "objects": []})
+    target = CaseTarget(label="mug", position=[2.9, 0.0, 0.8])
+    said = GroundingCase(
+        case_id="c", scene_graph=scene, utterance="u", target=target, meta={"target_region_id": 2}
+    )
+    assert target_region(said) == "2"
+    unsaid = GroundingCase(case_id="c", scene_graph=scene, utterance="u", target=target)
+    assert target_region(unsaid) == "4"  # without the case's word, the smallest box holding it

@@ -166,7 +166,12 @@ class Split:
 
 
 def target_region(case: GroundingCase) -> str | None:
-    """The smallest region whose box holds the target, or None (the map)."""
+    """The target's region: the case's own word for it (`meta.target_region_id`, which the builder writes),
+    else the smallest region whose box holds the target, or None (the map). The boxes of turned rooms are
+    axis-aligned and overlap near shared walls, so the box alone can name the neighbour."""
+    said = case.meta.get("target_region_id")
+    if said is not None and any(r.id == str(said) for r in case.scene_graph.regions):
+        return str(said)
     y = np.asarray(case.target.position, dtype=np.float64)
     holding = [
         (float(np.prod(r.size)), r.id)
