@@ -14,7 +14,7 @@ from scipy.stats import chi2, multivariate_normal
 from app.cli import build_parser, main
 from app.data.cases import CaseHypothesis, CaseTarget, GroundingCase, read_cases
 from app.evaluation import cli as eval_cli
-from app.evaluation.metrics import DEFAULT_MASSES, hdr_coverage, nees
+from app.evaluation.metrics import DEFAULT_MASSES, hdr_coverage, nees, no_language_nll
 from app.evaluation.static import (
     DEFAULT_HDR_SAMPLES,
     GROUNDERS,
@@ -26,7 +26,6 @@ from app.evaluation.static import (
     evaluate_static,
     expected_calibration_error,
     mixture_coverage,
-    no_language_nll,
     reliability_bins,
     run_static,
     true_hypothesis_nll,

@@ -48,7 +48,14 @@ from app.lsm.model import (
 )
 from app.lsm.text_encoder import MINILM_SHA256, TextEncoder
 from app.scene_graph.model import SceneGraph
-from app.training.lsm import Densities, apply_calibration, fit_calibration, predict, target_region
+from app.training.lsm import (
+    Densities,
+    apply_calibration,
+    density_summary,
+    fit_calibration,
+    predict,
+    target_region,
+)
 from tests.conftest import moved_scene
 
 CASES = Path(__file__).parent / "resources" / "lsm" / "cases.jsonl"
@@ -953,3 +960,15 @@ def test_a_region_sample_names_the_room_the_case_says_not_an_overlapping_neighbo
     assert target_region(said) == "2"
     unsaid = GroundingCase(case_id="c", scene_graph=scene, utterance="u", target=target)
     assert target_region(unsaid) == "4"  # without the case's word, the smallest box holding it
+
+
+def test_the_training_report_scores_the_no_language_baseline_as_the_evaluation_does() -> None:
+    """A target outside the map box has no uniform density: left out of the baseline's mean and counted as
+    better, as `vlmap eval static` counts it (the report had used the box's volume for it)."""
+    means = np.zeros((2, 3))
+    covariances = np.repeat(np.eye(3)[None], 2, axis=0)
+    densities = Densities(means, covariances, covariances, np.zeros(2))
+    baseline = np.array([4.0, math.inf])  # `no_language_nll` of a target inside, and of one outside
+    summary = density_summary(densities, np.zeros((2, 3)), baseline, None)
+    assert summary["uniform_nll"] == 4.0 and summary["uniform_outside"] == 1
+    assert summary["better_than_uniform"] == 1.0  # NLL 2.76 < 4, and anything < inf

@@ -23,7 +23,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from app.grounding.mixture import GaussianMixture
+from app.grounding.mixture import GaussianMixture, map_box
+from app.scene_graph.model import SceneGraph
 
 _LOG_2PI = math.log(2.0 * math.pi)
 DEFAULT_MASSES = (0.5, 0.9, 0.95)
@@ -195,3 +196,10 @@ def clustered_interval(
     means = clustered_mean_draws(values, np.asarray(clusters), draws)
     low, high = np.quantile(means, [(1.0 - level) / 2.0, (1.0 + level) / 2.0])
     return float(low), float(high)
+
+
+def no_language_nll(scene_graph: SceneGraph, target: np.ndarray) -> float:
+    """-log U(y; map box) = log vol(U) with y inside U (`map_box`), +inf outside: the no-language baseline of
+    `vlmap eval static` and of the training report alike."""
+    box = map_box(scene_graph)
+    return math.log(box.volume) if bool(box.contains(target)[0]) else math.inf

@@ -92,10 +92,18 @@ import numpy as np
 
 from app.data.cases import GroundingCase, case_room, read_cases
 from app.errors import InvalidInput, ModelUnavailable
-from app.evaluation.metrics import DEFAULT_MASSES, clustered_interval, hdr_coverage, mixture_nll, nees, rmse
+from app.evaluation.metrics import (
+    DEFAULT_MASSES,
+    clustered_interval,
+    hdr_coverage,
+    mixture_nll,
+    nees,
+    no_language_nll,
+    rmse,
+)
 from app.grounding.hypotheses import Hypothesis, Proposal
 from app.grounding.interfaces import Grounder, HypothesisProposer
-from app.grounding.mixture import GaussianMixture, map_box
+from app.grounding.mixture import GaussianMixture
 from app.grounding.relations import Relation
 from app.grounding.sensor import Grounding, LanguageSensor
 from app.scene_graph.model import SceneGraph
@@ -236,12 +244,6 @@ def mixture_coverage(
         return np.array([level <= m for m in masses])
     covered: np.ndarray = hdr_coverage(mixture, np.asarray(target).reshape(1, 3), rng, masses, hdr_samples)[0]
     return covered
-
-
-def no_language_nll(scene_graph: SceneGraph, target: np.ndarray) -> float:
-    """-log U(y; map box) = log vol(U) with y inside U (`map_box`), +inf outside."""
-    box = map_box(scene_graph)
-    return math.log(box.volume) if bool(box.contains(target)[0]) else math.inf
 
 
 def moment_nees(density: GaussianMixture, target: np.ndarray) -> float:

@@ -46,11 +46,10 @@ import numpy as np
 import torch
 
 from app.data.cases import GroundingCase, case_room, read_cases
-from app.evaluation.metrics import clustered_interval, gaussian_nll, nees
+from app.evaluation.metrics import clustered_interval, gaussian_nll, nees, no_language_nll
 from app.grounding.box_relations import internal_support_reach
 from app.grounding.hypotheses import Hypothesis
 from app.grounding.interfaces import Grounder
-from app.grounding.mixture import UniformBox
 from app.grounding.parsing import target_noun
 from app.grounding.relations import Relation
 from app.lsm.features import EmbeddingCache, PackedSamples, Sample, make_sample, to_world
@@ -155,7 +154,9 @@ class Split:
     sources: list[str]
     cases: list[GroundingCase]  # the case of each object sample (for the baselines), when kept
     skipped: int
-    map_log_volumes: np.ndarray  # (S,) log vol of each sample's map box: the uniform baseline's NLL
+    map_log_volumes: (
+        np.ndarray
+    )  # (S,) the uniform baseline's NLL (`no_language_nll`; inf outside the map box)
     rooms: list[str]  # each sample's room (`case_room`): the unit the ANEES interval resamples
     conventions: list[str]  # each sample's relation convention (`meta.convention`; "" when not said)
 
@@ -179,14 +180,6 @@ def target_region(case: GroundingCase) -> str | None:
         if np.all(np.abs(y - np.asarray(r.center)) <= 0.5 * np.asarray(r.size))
     ]
     return min(holding)[1] if holding else None
-
-
-def map_log_volume(case: GroundingCase) -> float:
-    """log vol of the objects' bounding box (sides at least 0.1 m): -log of the uniform baseline's density."""
-    objects = case.scene_graph.objects
-    low = np.min([o.min_corner for o in objects], axis=0)
-    high = np.max([o.max_corner for o in objects], axis=0)
-    return math.log(UniformBox.around(low, high).volume)
 
 
 def resting_position(case: GroundingCase) -> list[float]:
@@ -250,8 +243,8 @@ def load_split(
             continue
         regions = tuple(r.name.lower() for r in case.scene_graph.regions if r.name)
         target = target_noun(case.utterance, regions) or case.target.label
-        volume = map_log_volume(case)
         position = resting_position(case) if resting_on else case.target.position
+        volume = no_language_nll(case.scene_graph, np.asarray(position, dtype=np.float64))
         samples.append(make_sample(case.scene_graph, truth.anchor_ids, truth.relation, target, cfg, position))
         taken += 1
         groups.append(truth.relation.value)
@@ -388,7 +381,12 @@ def density_summary(
         "rmse": float(np.sqrt(np.mean(errors**2))),
         "nll_mean": float(np.mean(nll)),
         "nll_median": float(np.median(nll)),
-        "uniform_nll": float(np.mean(map_log_volumes)),
+        # As `vlmap eval static` has them: the baseline's mean over the targets inside the map box, and a
+        # target outside it (no density there) counted as better.
+        "uniform_nll": float(np.mean(inside))
+        if len(inside := map_log_volumes[np.isfinite(map_log_volumes)])
+        else None,
+        "uniform_outside": int(np.sum(~np.isfinite(map_log_volumes))),
         "better_than_uniform": float(np.mean(nll < map_log_volumes)),
         "anees": float(np.mean(per_case)),
         "nees_median": float(np.median(per_case)),
