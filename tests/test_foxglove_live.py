@@ -89,6 +89,43 @@ def test_a_viewer_that_comes_after_every_other_left_gets_the_last_state() -> Non
             live.stop()
 
 
+async def _first_log_times(port: int, topics: Topics, expected: int) -> list[int]:
+    """Subscribe to all of a session's topics at once; the log times of the first `expected` messages."""
+    url = f"ws://127.0.0.1:{port}"
+    async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=WAIT_S) as ws:  # type: ignore[list-item]
+        channels: dict[str, Any] = {}
+        wanted = {topics.scene_graph, topics.belief, topics.mixture, topics.utterances, topics.summary}
+        while not wanted <= channels.keys():
+            message = json.loads(await asyncio.wait_for(ws.recv(), WAIT_S))
+            if message["op"] == "advertise":
+                channels |= {c["topic"]: c for c in message["channels"]}
+        subscribe = [{"id": k + 1, "channelId": channels[t]["id"]} for k, t in enumerate(sorted(wanted))]
+        await ws.send(json.dumps({"op": "subscribe", "subscriptions": subscribe}))
+        times: list[int] = []
+        while len(times) < expected:
+            frame = await asyncio.wait_for(ws.recv(), WAIT_S)
+            if isinstance(frame, bytes) and frame[0] == 1:  # MessageData: op, subscription id, log time, data
+                times.append(int.from_bytes(frame[5:13], "little"))
+        return times
+
+
+def test_a_first_viewer_gets_the_sessions_messages_in_log_time_order() -> None:
+    """Every utterance's log and the latest of each other topic: the logs had come first and the other topics'
+    older messages after them, so a viewer saw time go back."""
+    with served(model_free_settings()) as service, VLMapClient(service.url) as client:
+        sid = client.create_session("r4", SCENE, target_label="backpack", label_map=LABELS)["id"]
+        client.send_utterance(sid, "my backpack is on the table")
+        client.send_observations(sid, voxels=np.array([[1, 1, 1]]), labels=np.array([1]))
+        client.send_utterance(sid, "the mug is on the sofa")  # not fused: the newest frame is a log
+        live = LiveServer(client, session_id=sid, port=0)
+        threading.Thread(target=live.run, daemon=True).start()
+        try:
+            times = asyncio.run(_first_log_times(live.port, Topics(sid), expected=6))
+            assert times == sorted(times), times
+        finally:
+            live.stop()
+
+
 def test_without_a_subscriber_nothing_is_fetched() -> None:
     with served(model_free_settings()) as service, VLMapClient(service.url) as client:
         session = client.create_session("r2", SCENE, target_label="backpack", label_map=LABELS)

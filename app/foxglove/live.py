@@ -181,9 +181,12 @@ class LiveServer:
     def _messages(
         self, shown: _Shown, frames: list[dict[str, Any]], *, latest_only: bool
     ) -> Iterator[tuple[str, Message, int]]:
-        """The frames' messages; `latest_only`: the last one per topic, but every utterance."""
+        """The frames' messages; `latest_only`: the last one per topic, but every utterance, all of them in
+        log-time order (a viewer reads the order it receives as time: the utterances' logs first and the
+        other topics' older messages after them went back in time)."""
         assert shown.converter is not None
         latest: dict[str, tuple[Message, int]] = {}
+        said: list[tuple[str, Message, int]] = []
         for frame in frames:
             if frame["summary"] is None:
                 key = (int(frame["version"]), float(frame["at"]))
@@ -194,12 +197,14 @@ class LiveServer:
                 shown.version = max(shown.version or 0, int(frame["version"]))
             log_time = round(float(frame["at"]) * 1e9)
             for topic, message in shown.converter.messages(frame):
-                if latest_only and topic != shown.channels.topics.utterances:
-                    latest[topic] = (message, log_time)
-                else:
+                if not latest_only:
                     yield topic, message, log_time
-        for topic, (message, log_time) in latest.items():
-            yield topic, message, log_time
+                elif topic == shown.channels.topics.utterances:
+                    said.append((topic, message, log_time))
+                else:
+                    latest[topic] = (message, log_time)
+        merged = [*said, *((topic, message, log_time) for topic, (message, log_time) in latest.items())]
+        yield from sorted(merged, key=lambda item: item[2])
 
     # -- the push stream ------------------------------------------------------------------------------------
 
