@@ -12,7 +12,7 @@ import pytest
 from app.data.build import BuildConfig, build_cases, read_ai2thor, read_scannet
 from app.data.conventions import Convention, holds
 from app.data.houses import room_map
-from app.data.relocate import MAX_OVERLAP, SUPPORT_MAX_HEIGHT, floor_height, relocated
+from app.data.relocate import MAX_OVERLAP, MAX_TARGET_SIDE, SUPPORT_MAX_HEIGHT, floor_height, relocated
 from app.grounding.box_relations import FLOOR_CEILING, Box, TrueReading, volume_overlap
 from app.scene_graph.model import Region, SceneObject
 from app.vocabulary import in_classes
@@ -72,7 +72,7 @@ def test_a_moved_target_rests_on_the_floor_or_on_a_top_inside_its_region_and_ins
                     continue
                 share = float(volume_overlap(Box.of(moved), Box.of(o)) / np.prod(high - low))
                 assert share <= MAX_OVERLAP + 1e-9, (layout.map_id, target.label, o.label)
-    assert on_floor > 20 and on_top > 20
+    assert on_floor > 10 and on_top > 10
 
 
 def test_the_floor_is_the_lowest_furniture_bottom_not_the_floor_slab():
@@ -101,6 +101,23 @@ def test_a_mug_goes_on_the_table_top_or_the_floor_and_never_on_the_wardrobe():
     assert heights == {0.0, 0.8}  # the wardrobe's top (2.2 m) is too high to leave a mug on
 
 
+def test_windows_doors_and_fixtures_hold_nothing_and_doors_are_not_put_down():
+    """Their boxes have tops, but a keyboard on a door or a chair on a window is no place a person uses."""
+    mug = obj("m", "mug", [0.5, 0.5, 1.0], [0.1, 0.1, 0.12])
+    fixtures = [
+        obj("w", "window", [2.0, 3.9, 1.2], [1.2, 0.3, 1.2]),
+        obj("d", "door", [3.9, 2.0, 1.0], [0.3, 0.9, 2.0]),
+        obj("f", "faucet", [1.0, 3.8, 0.9], [0.3, 0.3, 0.2]),
+        obj("p", "bathroom stall", [0.3, 3.0, 1.0], [0.3, 1.5, 2.0]),
+    ]
+    rng = np.random.default_rng(2)
+    for _ in range(100):
+        moved = relocated(mug, fixtures, ROOM, rng)
+        assert moved is not None and moved.min_corner[2] == pytest.approx(0.0)  # the floor only
+    door = obj("x", "door", [1.0, 1.0, 1.0], [0.9, 0.1, 2.0])
+    assert relocated(door, [obj("t", "table", [1.0, 1.0, 0.4], [1.0, 1.0, 0.8])], ROOM, rng) is None
+
+
 def test_no_place_is_found_for_a_target_wider_than_its_room():
     sofa = obj("s", "sofa", [1, 1, 0.4], [5.0, 1.0, 0.8])
     others = [obj("t", "table", [1.0, 1.0, 0.4], [1.0, 1.0, 0.8])]
@@ -126,7 +143,10 @@ def test_only_train_targets_move_and_their_relations_hold_where_they_now_rest(sc
         assert {c.meta["scene_id"] for c in held} == {c.meta["scene_id"] for s, c in plain if s == split}
     train = [c for s, c in moved if s == "train"]
     relocated_cases = [c for c in train if c.meta["relocated"]]
-    assert len(relocated_cases) > 0.8 * len(train)
+    # Every target a person puts down (no side over MAX_TARGET_SIDE) moves; a door or a table stays.
+    movable = [c for c in train if c.target.size is None or max(c.target.size) <= MAX_TARGET_SIDE]
+    assert len(relocated_cases) > 0.7 * len(movable) > 0  # a crowded room may have no place left
+    assert all(max(c.target.size or [0.0]) <= MAX_TARGET_SIDE for c in relocated_cases)
     originals = {
         (c.meta["scene_id"], c.meta["target_id"]): c.target.position for s, c in plain if s == "train"
     }
@@ -144,4 +164,5 @@ def test_only_train_targets_move_and_their_relations_hold_where_they_now_rest(sc
         reading = TrueReading(hyp.relation, tuple(hyp.anchor_ids))
         # AI2-THOR's on/in too come from the boxes once the target has left its receptacle.
         assert holds(Convention(case.meta["convention"]), reading, target, case.scene_graph.objects, volume)
-    assert changed > 0.8 * len(relocated_cases)
+    # The builder balances relations over the build, so some moved targets have no plain twin to compare.
+    assert changed > 0.7 * len(relocated_cases)

@@ -15,7 +15,16 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from app.grounding.box_relations import FLOOR_CEILING, Box, is_room_shell, volume_overlap
+from app.grounding.box_relations import (
+    FLOOR_CEILING,
+    OPENINGS,
+    PARTS,
+    WALL_LIKE,
+    Box,
+    is_room_shell,
+    label_set,
+    volume_overlap,
+)
 from app.scene_graph.model import Region, SceneObject
 from app.vocabulary import in_classes
 
@@ -23,6 +32,19 @@ from app.vocabulary import in_classes
 FLOOR_PROBABILITY = 0.3
 # Tops higher than this above the floor hold nothing a person would leave there (shelves' tops, wardrobes).
 SUPPORT_MAX_HEIGHT = 2.0
+# Things a person puts down: a target longer than this (a door, a table) stays where its source put it.
+MAX_TARGET_SIDE = 1.0
+# What holds nothing on top, whatever its box says: walls and partitions, doors, windows and curtains, parts,
+# and fixtures on walls or over basins.
+NOT_SUPPORTS = (
+    WALL_LIKE
+    | OPENINGS
+    | PARTS
+    | label_set(
+        "faucet, shower head, light switch, mirror, picture, painting, poster, clock, whiteboard, "
+        "blackboard, bulletin board, towel bar, soap dispenser, paper towel dispenser, vent, ceiling light"
+    )
+)
 # A place is rejected when more than this share of the target's box lies inside another object's box.
 MAX_OVERLAP = 0.05
 TRIES = 20
@@ -50,10 +72,11 @@ def relocated(
     rng: np.random.Generator,
 ) -> SceneObject | None:
     """The target resting at a random place of its region (`others` exclude it), or None where no place
-    was found in TRIES draws. The floor is the region's box footprint at `floor_height`; a furniture top is
+    was found in TRIES draws or the target is no thing a person puts down (a side over MAX_TARGET_SIDE).
+    The floor is the region's box footprint at `floor_height`; a furniture top is
     any non-shell object of the region under SUPPORT_MAX_HEIGHT whose footprint holds the target's."""
     local = [o for o in others if region is None or o.region_id in (None, region.id)]
-    if not local:
+    if not local or max(target.size) > MAX_TARGET_SIDE:
         return None
     half = target.half_extent
     floor = floor_height(local)
@@ -71,6 +94,7 @@ def relocated(
         k
         for k, o in enumerate(solid)
         if not is_room_shell(o.label)
+        and not in_classes(o.label, NOT_SUPPORTS)
         and float(solid_high[k, 2]) - floor <= SUPPORT_MAX_HEIGHT
         and np.all(solid_high[k, :2] - solid_low[k, :2] >= 2 * half[:2])
     ]
