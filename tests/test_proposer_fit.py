@@ -173,3 +173,26 @@ def test_no_scan_is_on_both_sides_of_the_held_out_split() -> None:
             sides[side].update(c.meta["scene_ids"])
     assert sides == {True: {held, held_2}, False: {fit, fit_2}}
     assert referents.held_out(cases[-1], 0.2) is None
+
+
+def test_the_fit_report_scores_referents_as_the_evaluation_does() -> None:
+    """Two readings of table A (near, on: 0.3 each) and one of table B (0.4), the truth A: one referent of
+    weight 0.6, the top one (the report had taken single rows: top-1 missed, ECE 0.60)."""
+    rows = 3
+    case = referents.FitCase(
+        case_id="c",
+        kind="built",
+        keys=np.zeros(rows, dtype=int),
+        features=np.zeros((rows, 1)),
+        attribute=np.zeros(rows),
+        spreads=np.full(rows, -1),
+        density=np.zeros((rows, 6)),
+        utterance_features=np.zeros(1),
+        log_uniform=0.0,
+        log_broad=0.0,
+        correct=np.array([True, True, False]),
+        anchors=(("A",), ("A",), ("B",)),
+    )
+    score = referents.case_referent(case, np.array([0.3, 0.3, 0.4]))
+    assert score.top1
+    assert sorted(score.weights.tolist()) == pytest.approx([0.4, 0.6])

@@ -34,7 +34,7 @@ import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -48,6 +48,9 @@ from app.grounding.relations import Relation
 from app.grounding.sensor import broad_density
 from app.training.search import golden_section
 from app.vocabulary import lemmas
+
+if TYPE_CHECKING:
+    from app.evaluation.static import ReferentScore
 
 log = logging.getLogger("vlmap.proposer")
 
@@ -71,6 +74,7 @@ class FitCase:
     log_uniform: float  # log U(y): -log vol(map box), -inf outside it
     log_broad: float  # log B(y)
     correct: np.ndarray | None  # (H,) bool: holds the true anchors (built cases)
+    anchors: tuple[tuple[str, ...], ...] = ()  # (H,) each row's anchor ids; () for a region row
 
 
 def prepare_case(
@@ -118,6 +122,7 @@ def prepare_case(
         log_uniform=-math.log(box.volume) if inside else -math.inf,
         log_broad=log_broad,
         correct=correct,
+        anchors=tuple(found.anchor_ids(h) for h in range(len(found.keys))),
     )
 
 
@@ -302,14 +307,28 @@ def fit_temperature(params: _Parameters, batch: _Batch, attribute_weight: float)
     return math.exp(golden_section(loss, math.log(0.25), math.log(4.0), iterations=40))
 
 
+def case_referent(case: FitCase, weights: np.ndarray) -> ReferentScore:
+    """A built case's readings, weighted, as `vlmap eval static` scores a proposal (`referent_score`)."""
+    from app.evaluation.static import referent_score
+
+    readings = [
+        Hypothesis(anchors, Relation.NEAR, float(w)) for anchors, w in zip(case.anchors, weights, strict=True)
+    ]
+    correct = case.correct if case.correct is not None else np.zeros(len(case.anchors), dtype=bool)
+    hits = [frozenset(a) for a, hit in zip(case.anchors, correct, strict=True) if hit]
+    truth = hits[0] if hits else frozenset({"\0no true reading"})
+    return referent_score("", readings, truth)
+
+
 def summarise(
     params: _Parameters, batch: _Batch, cases: Sequence[FitCase], attribute_weight: float, temperature: float
 ) -> dict[str, Any]:
     """Held-out figures at the truth: mean -log p(y), the uniform's, the share better, per kind; and the
-    referent top-1, true-hypothesis NLL and ECE of the built cases."""
+    built cases' referent figures as `vlmap eval static` has them (`summarize_referent`: the weights of the
+    readings of one anchor set summed, region readings left out)."""
     import torch
 
-    from app.evaluation.static import expected_calibration_error
+    from app.evaluation.static import summarize_referent
 
     with torch.no_grad():
         log_p, log_pi = _log_density(params, batch, attribute_weight, temperature)
@@ -329,22 +348,8 @@ def summarise(
     if built:
         pi = np.exp(log_pi.numpy())
         row_case = batch.row_case.numpy()
-        correct = batch.correct.numpy()
-        weights, hits, top1, true_nll = [], [], [], []
-        for i in built:
-            rows = row_case == i
-            w, hit = pi[rows], correct[rows]
-            objects = np.asarray(cases[i].keys) != _KEYS.index(REGION)
-            weights.append(w[objects])
-            hits.append(hit[objects])
-            top1.append(bool(hit[int(np.argmax(w))]))
-            true_nll.append(-math.log(max(float(w[hit].sum()), 1e-6)))
-        out["referent"] = {
-            "n": len(built),
-            "top1_accuracy": float(np.mean(top1)),
-            "true_hypothesis_nll": float(np.mean(true_nll)),
-            "ece": expected_calibration_error(np.concatenate(weights), np.concatenate(hits)),
-        }
+        scores = [case_referent(cases[i], pi[row_case == i]) for i in built]
+        out["referent"] = summarize_referent(scores)
     return out
 
 
