@@ -24,18 +24,26 @@ from tests.test_recording import LABELS, SCENE
 WAIT_S = 60.0
 
 
+def _wanted(topics: Topics) -> set[str]:
+    return {topics.scene_graph, topics.belief, topics.mixture, topics.utterances, topics.summary}
+
+
+async def _channels(ws: Any, topics: Topics) -> dict[str, Any]:
+    """Read the advertisements until the session's channels are all there (they may come in several)."""
+    channels: dict[str, Any] = {}
+    while not _wanted(topics) <= channels.keys():
+        message = json.loads(await asyncio.wait_for(ws.recv(), WAIT_S))
+        if message["op"] == "advertise":
+            channels |= {c["topic"]: c for c in message["channels"]}
+    return channels
+
+
 async def _advertised(port: int, topics: Topics) -> tuple[str | None, dict[str, Any], list[bytes]]:
-    """Connect, read the advertisements until the session's channels are there, subscribe to its belief and
-    read one binary message (a MessageData frame)."""
+    """Connect, read the session's channels, subscribe to its belief and read one binary message (a
+    MessageData frame)."""
     url = f"ws://127.0.0.1:{port}"
     async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=WAIT_S) as ws:  # type: ignore[list-item]
-        channels: dict[str, Any] = {}
-        # A session's channels may come in more than one advertise message: wait for all of them.
-        wanted = {topics.scene_graph, topics.belief, topics.mixture, topics.utterances, topics.summary}
-        while not wanted <= channels.keys():
-            message = json.loads(await asyncio.wait_for(ws.recv(), WAIT_S))
-            if message["op"] == "advertise":
-                channels |= {c["topic"]: c for c in message["channels"]}
+        channels = await _channels(ws, topics)
         subscribe = [{"id": 1, "channelId": channels[topics.belief]["id"]}]
         await ws.send(json.dumps({"op": "subscribe", "subscriptions": subscribe}))
         data: list[bytes] = []
@@ -93,13 +101,10 @@ async def _first_log_times(port: int, topics: Topics, expected: int) -> list[int
     """Subscribe to all of a session's topics at once; the log times of the first `expected` messages."""
     url = f"ws://127.0.0.1:{port}"
     async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=WAIT_S) as ws:  # type: ignore[list-item]
-        channels: dict[str, Any] = {}
-        wanted = {topics.scene_graph, topics.belief, topics.mixture, topics.utterances, topics.summary}
-        while not wanted <= channels.keys():
-            message = json.loads(await asyncio.wait_for(ws.recv(), WAIT_S))
-            if message["op"] == "advertise":
-                channels |= {c["topic"]: c for c in message["channels"]}
-        subscribe = [{"id": k + 1, "channelId": channels[t]["id"]} for k, t in enumerate(sorted(wanted))]
+        channels = await _channels(ws, topics)
+        subscribe = [
+            {"id": k + 1, "channelId": channels[t]["id"]} for k, t in enumerate(sorted(_wanted(topics)))
+        ]
         await ws.send(json.dumps({"op": "subscribe", "subscriptions": subscribe}))
         times: list[int] = []
         while len(times) < expected:
