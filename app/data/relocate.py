@@ -15,14 +15,15 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from app.data.layouts import PORTABLE_MAX_SIDE
 from app.grounding.box_relations import (
     FLOOR_CEILING,
     OPENINGS,
     PARTS,
     WALL_LIKE,
+    WALL_MOUNTED,
     Box,
     is_room_shell,
-    label_set,
     volume_overlap,
 )
 from app.scene_graph.model import Region, SceneObject
@@ -32,19 +33,8 @@ from app.vocabulary import in_classes
 FLOOR_PROBABILITY = 0.3
 # Tops higher than this above the floor hold nothing a person would leave there (shelves' tops, wardrobes).
 SUPPORT_MAX_HEIGHT = 2.0
-# Things a person puts down: a target longer than this (a door, a table) stays where its source put it.
-MAX_TARGET_SIDE = 1.0
-# What holds nothing on top, whatever its box says: walls and partitions, doors, windows and curtains, parts,
-# and fixtures on walls or over basins.
-NOT_SUPPORTS = (
-    WALL_LIKE
-    | OPENINGS
-    | PARTS
-    | label_set(
-        "faucet, shower head, light switch, mirror, picture, painting, poster, clock, whiteboard, "
-        "blackboard, bulletin board, towel bar, soap dispenser, paper towel dispenser, vent, ceiling light"
-    )
-)
+# What holds nothing on top, whatever its box says.
+NOT_SUPPORTS = WALL_LIKE | OPENINGS | PARTS | WALL_MOUNTED
 # A place is rejected when more than this share of the target's box lies inside another object's box.
 MAX_OVERLAP = 0.05
 TRIES = 20
@@ -72,11 +62,11 @@ def relocated(
     rng: np.random.Generator,
 ) -> SceneObject | None:
     """The target resting at a random place of its region (`others` exclude it), or None where no place
-    was found in TRIES draws or the target is no thing a person puts down (a side over MAX_TARGET_SIDE).
+    was found in TRIES draws or the target is not portable (a side over PORTABLE_MAX_SIDE: a door, a table).
     The floor is the region's box footprint at `floor_height`; a furniture top is
     any non-shell object of the region under SUPPORT_MAX_HEIGHT whose footprint holds the target's."""
     local = [o for o in others if region is None or o.region_id in (None, region.id)]
-    if not local or max(target.size) > MAX_TARGET_SIDE:
+    if not local or max(target.size) > PORTABLE_MAX_SIDE:
         return None
     half = target.half_extent
     floor = floor_height(local)

@@ -112,6 +112,11 @@ OPENINGS = label_set(
     "door, doorframe, doorway, window, window frame, closet door, bathroom stall door, shower door, "
     "glass door, sliding door, garage door, curtain, blinds, shower curtain, shower glass"
 )
+# Fixed to a wall or over a basin: their boxes have tops, but nothing is left on them.
+WALL_MOUNTED = label_set(
+    "faucet, shower head, light switch, mirror, picture, painting, poster, clock, whiteboard, blackboard, "
+    "bulletin board, towel bar, soap dispenser, paper towel dispenser, vent, ceiling light"
+)
 GENERIC = label_set("object, structure, otherstructure, otherprop, otherfurniture, unknown")
 PARTS = label_set("drawer, stove knob, knob, handle")
 CONTAINERS = label_set(
