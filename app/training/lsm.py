@@ -376,17 +376,16 @@ def density_summary(
     errors = np.linalg.norm(densities.means - targets, axis=1)
     nll = densities.nll(targets)
     per_case = nees(densities.means, densities.moment_covariances, targets)
+    # As `vlmap eval static` has them: the baseline's mean over the targets inside the map box, and a target
+    # outside it (no density there) counted as better.
+    inside = np.isfinite(map_log_volumes)
     out: dict[str, Any] = {
         "n": len(errors),
         "rmse": float(np.sqrt(np.mean(errors**2))),
         "nll_mean": float(np.mean(nll)),
         "nll_median": float(np.median(nll)),
-        # As `vlmap eval static` has them: the baseline's mean over the targets inside the map box, and a
-        # target outside it (no density there) counted as better.
-        "uniform_nll": float(np.mean(inside))
-        if len(inside := map_log_volumes[np.isfinite(map_log_volumes)])
-        else None,
-        "uniform_outside": int(np.sum(~np.isfinite(map_log_volumes))),
+        "uniform_nll": float(np.mean(map_log_volumes[inside])) if inside.any() else None,
+        "uniform_outside": int(np.sum(~inside)),
         "better_than_uniform": float(np.mean(nll < map_log_volumes)),
         "anees": float(np.mean(per_case)),
         "nees_median": float(np.median(per_case)),
