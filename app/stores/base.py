@@ -79,6 +79,10 @@ class IdempotencyRecord:
     def unpack(cls, data: bytes) -> IdempotencyRecord:
         return cls(*msgpack.unpackb(data, raw=False))
 
+    def remembered(self, now: float, window_s: float) -> bool:
+        """Whether the key is still remembered at `now`: applied at most `window_s` before."""
+        return now - self.at <= window_s
+
     @classmethod
     def of(
         cls, idempotency: Idempotency, result: UpdateResult, at: float, commit: str = "", robot_id: str = ""
@@ -109,7 +113,7 @@ class IdempotencyLog:
         if idempotency is None:
             return
         record = self._records.get(idempotency.key)
-        if record is not None and now - record.at <= self.window_s:
+        if record is not None and record.remembered(now, self.window_s):
             raise AlreadyApplied(record)
 
     def add(self, key: str, record: IdempotencyRecord) -> None:
@@ -123,6 +127,10 @@ class IdempotencyLog:
 
     def items(self) -> list[tuple[str, IdempotencyRecord]]:
         return list(self._records.items())
+
+    def live(self, now: float) -> list[tuple[str, IdempotencyRecord]]:
+        """The keys still remembered at `now` (a deleted session's tombstone keeps those)."""
+        return [(k, r) for k, r in self._records.items() if r.remembered(now, self.window_s)]
 
 
 @dataclass(frozen=True)

@@ -401,7 +401,7 @@ class MemorySessionStore:
         with self._registry_lock:
             tombstones = list(self._tombstones.items())
         for sid, (robot_id, keys) in tombstones:
-            live = self._live_keys(keys, now)
+            live = keys.live(now)
             if not live:
                 with self._registry_lock:
                     self._tombstones.pop(sid, None)
@@ -409,10 +409,6 @@ class MemorySessionStore:
             self._append(
                 {"op": "tombstone", "sid": sid, "t": now, "robot": robot_id, "keys": _packed_keys(live)}
             )
-
-    def _live_keys(self, keys: IdempotencyLog, now: float) -> list[tuple[str, IdempotencyRecord]]:
-        """A tombstone's keys still within the idempotency window."""
-        return [(k, r) for k, r in keys.items() if now - r.at <= self.idempotency_window_s]
 
     @staticmethod
     def _snapshot_bytes(entry: _Entry) -> bytes:
@@ -491,9 +487,7 @@ class MemorySessionStore:
                 with self._registry_lock:
                     # Tombstones whose keys have all left the window go here too: without a data directory
                     # no compaction would ever drop them.
-                    for gone in [
-                        t for t, (_, keys) in self._tombstones.items() if not self._live_keys(keys, now)
-                    ]:
+                    for gone in [t for t, (_, keys) in self._tombstones.items() if not keys.live(now)]:
                         del self._tombstones[gone]
                     self._tombstones[entry.session.id] = (entry.session.robot_id, entry.keys)
             entry.deleted = True

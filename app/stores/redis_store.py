@@ -897,7 +897,7 @@ class RedisSessionStore:
         if packed is None:
             return None
         record = IdempotencyRecord.unpack(packed)
-        return record if (now - record.at) * 1000 <= self.idempotency_window_ms else None
+        return record if record.remembered(now, self.idempotency_window_ms / 1000) else None
 
     def _reserve(self, session_id: str, robot_index: str, now: float, limit: int) -> None:
         """Count the session in its robot's index, atomically with the check that the robot has fewer than
